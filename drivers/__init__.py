@@ -1,0 +1,1 @@
+"""fieldguard device drivers: implementations of the hal interfaces, with Sim/Replay twins."""
