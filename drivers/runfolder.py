@@ -340,7 +340,8 @@ def _read_laser(file: Path, geom: LaserGeometry) -> np.ndarray | None:
     if len(lines) == geom.beams + 1 and lines[-1] == "":
         lines.pop()                      # the final newline
     if len(lines) != geom.beams:
-        raise RunFormatError(f"{file}: {len(lines)} lines, run.toml says {geom.beams} beams "
+        n = text.count("\n") + (0 if not text or text.endswith("\n") else 1)
+        raise RunFormatError(f"{file}: {n} lines, run.toml says {geom.beams} beams "
                              f"(one range per line, empty line = no return)")
     out = np.full(geom.beams, np.nan, dtype=np.float32)
     for i, s in enumerate(lines):
