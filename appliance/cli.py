@@ -1,0 +1,238 @@
+"""The ``fieldguard`` command."""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import threading
+import time
+
+from hal.errors import FieldguardError
+
+log = logging.getLogger("fieldguard")
+
+
+def _setup_logging(verbose: bool) -> None:
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+                        stream=sys.stderr)
+
+
+def _load(path):
+    from appliance.config import default_config, load_config
+    return load_config(path) if path else default_config()
+
+
+# ---------------------------------------------------------------------------------------------
+def cmd_run(a) -> int:
+    from appliance.daemon import Daemon, replay_config, sim_config
+    cfg = _load(a.config)
+    if a.sim is not None and a.replay:
+        raise FieldguardError("give --sim or --replay, not both")
+    if a.sim is not None:
+        cfg, mode = sim_config(cfg, a.sim or None), "sim"
+    elif a.replay:
+        cfg, mode = replay_config(cfg, a.replay), "replay"
+    else:
+        mode = "hardware"
+    pace = 0.0 if a.fast else None
+    d = Daemon(cfg, mode=mode, replay_path=a.replay, pace=pace, status_socket=a.socket)
+    d.install_signal_handlers()
+    d.start()
+    printer = None
+    if a.print_every and a.print_every > 0:
+        printer = _StatusPrinter(d, a.print_every)
+        d.loop.on_cycle.append(printer)
+    max_cycles = None
+    if a.duration:
+        max_cycles = int(round(a.duration * cfg.loop.rate_hz))
+    try:
+        d.run(max_cycles=max_cycles)
+    finally:
+        d.shutdown()
+        if printer:
+            printer.final()
+    return 0
+
+
+class _StatusPrinter:
+    """One line on stdout per change of state and every N seconds of (sim) time."""
+
+    def __init__(self, daemon, every_s: float):
+        self.d, self.every_ns = daemon, int(every_s * 1e9)
+        self.last_ns = None
+        self.last_state = None
+
+    def __call__(self, res) -> None:
+        changed = res.output.state.value != self.last_state
+        due = self.last_ns is None or res.stamp_ns - self.last_ns >= self.every_ns
+        if not (changed or due):
+            return
+        self.last_ns, self.last_state = res.stamp_ns, res.output.state.value
+        v = res.verdict
+        near = "-" if v is None or v.nearest_m is None else f"{v.nearest_m:4.1f} m"
+        sim = ""
+        hub = self.d.shared.get("sim_hub")
+        if hub is not None:
+            st = hub.field.stats()
+            sim = (f" | sim {st.get('time_s', 0):6.1f} s, {st.get('distance_m', 0):6.1f} m "
+                   f"driven, {st.get('collisions', 0)} collisions")
+        print(f"[{res.index:6d}] {res.output.state.value:5s} nearest {near:>7s} "
+              f"cells {len(res.cells_xy):4d} | {res.output.reason}{sim}", flush=True)
+
+    def final(self):
+        st = self.d.status()
+        print(json.dumps({"cycles": st.get("cycles"), "state": st.get("state"),
+                          "timing_ms": st.get("timing_ms", {}).get("cycle"),
+                          "overruns": st.get("overruns"), "sim": st.get("sim")}, default=str))
+
+
+def cmd_status(a) -> int:
+    from appliance.status import read_status
+    try:
+        doc = read_status(a.socket)
+    except ConnectionError as exc:
+        print(f"fieldguard status: {exc}", file=sys.stderr)
+        return 2
+    healthy = doc.get("state") != "STOP" or not doc.get("faults")
+    if a.json:
+        print(json.dumps(doc, indent=2))
+    else:
+        print(format_status(doc))
+    return 0 if healthy else 1
+
+
+def format_status(doc: dict) -> str:
+    lines = [f"state   {doc.get('state')}   ({doc.get('reason')})",
+             f"mode    {doc.get('mode')}   config {doc.get('config')}   cycles {doc.get('cycles')}"]
+    t = doc.get("timing_ms", {}).get("cycle", {})
+    lines.append(f"loop    last {t.get('last')} ms  p50 {t.get('p50')} ms  p99 {t.get('p99')} ms"
+                 f"  overruns {doc.get('overruns')}  skipped {doc.get('skipped')}")
+    lines.append("devices")
+    for n, h in doc.get("devices", {}).items():
+        age = "-" if h.get("age_s") is None else f"{h['age_s']:.2f} s"
+        req = "required" if h.get("required") else "optional"
+        lines.append(f"  {n:10s} {h.get('kind', ''):8s} {h.get('state'):9s} age {age:>8s} "
+                     f"{req}  {h.get('reason', '')}")
+    o = doc.get("obstacles")
+    if o:
+        lines.append(f"picture {o['occupied_cells']} occupied cells, stop zone {o['stop_zone_m']} m,"
+                     f" in stop {o['in_stop_zone']}, in slow {o['in_slow_zone']}, "
+                     f"nearest {o['nearest_m']} m")
+    for n, peers in doc.get("links", {}).items():
+        for p in peers:
+            lines.append(f"link    {n}: " + ", ".join(f"{k}={v}" for k, v in p.items()))
+    stops = doc.get("last_stops", [])
+    if stops:
+        lines.append("last stops")
+        for s in stops[-5:]:
+            lines.append(f"  t={s['stamp_s']:.1f} s  {s['reason']}")
+    return "\n".join(lines)
+
+
+def cmd_sim(a) -> int:
+    from appliance.progress import Progress
+    from drivers.sim.record import write_sim_run
+    sensors = tuple(a.sensors.split(",")) if a.sensors else None
+    kw = {} if sensors is None else {"sensors": sensors}
+    out = write_sim_run(a.scene, a.frames, a.out, seed=a.seed, stereo_scale=a.stereo_scale,
+                        progress=Progress(f"sim {a.scene}", a.frames), overwrite=a.overwrite,
+                        **kw)
+    print(f"wrote {a.frames} frames to {out} (preview: {out}/preview.png)")
+    return 0
+
+
+def cmd_eval(a) -> int:
+    from appliance.evaluation import evaluate_run, format_table
+    from appliance.progress import Progress
+    cfg = _load(a.config) if a.config else None
+    res = evaluate_run(a.run, a.pipeline, cfg, progress=Progress(f"eval {a.pipeline}", 1))
+    if a.json:
+        print(json.dumps(res, indent=2, default=float))
+    else:
+        print(format_table(res))
+    return 0
+
+
+def cmd_config_check(a) -> int:
+    from appliance.config import load_config
+    cfg = load_config(a.file)
+    print(f"{a.file}: OK ({len(cfg.devices)} devices: "
+          f"{', '.join(f'{d.name}={d.type}' for d in cfg.devices) or 'none'}; pipelines: "
+          f"{', '.join(cfg.perception.pipelines)})")
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="fieldguard", description=(
+        "fieldguard: obstacle-detection safety box for tractors and sprayers. "
+        "It tells the vehicle STOP whenever it cannot vouch for what is ahead."))
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
+
+    r = sub.add_parser("run", help="run the daemon (hardware, --sim or --replay)",
+                       description="Run the 10 Hz safety loop. With no --sim/--replay the "
+                                   "devices of the config file are used.")
+    r.add_argument("--config", help="TOML config file (default: built-in defaults)")
+    r.add_argument("--sim", nargs="?", const="", metavar="SCENE",
+                   help="run on the built-in simulated field (default scene: stubble-day)")
+    r.add_argument("--replay", metavar="RUN", help="replay a run folder through the loop")
+    r.add_argument("--fast", action="store_true", help="sim/replay as fast as possible")
+    r.add_argument("--duration", type=float, help="stop after this many seconds of loop time")
+    r.add_argument("--socket", help="status socket path (default: config or runtime dir)")
+    r.add_argument("--print-every", type=float, default=0.0, metavar="S",
+                   help="print a status line on every change of state and every S seconds")
+    r.set_defaults(func=cmd_run)
+
+    s = sub.add_parser("status", help="show the running daemon's state",
+                       description="Read the daemon's status socket. Exit 0 healthy, 1 STOP "
+                                   "with faults, 2 no daemon.")
+    s.add_argument("--json", action="store_true", help="machine-readable output")
+    s.add_argument("--socket", help="status socket path")
+    s.set_defaults(func=cmd_status)
+
+    m = sub.add_parser("sim", help="render a simulated scene into a run folder")
+    m.add_argument("scene", help="scene name (stubble-day, stubble-night, greenhouse, "
+                                 "stubble-empty)")
+    m.add_argument("--frames", type=int, default=100)
+    m.add_argument("--out", required=True, help="run folder to write")
+    m.add_argument("--seed", type=int, default=0)
+    m.add_argument("--stereo-scale", type=float, default=1.0,
+                   help="render stereo at this fraction of 1280x1024")
+    m.add_argument("--sensors", help="comma list of stereo,laser,rgbd (default: the scene's)")
+    m.add_argument("--overwrite", action="store_true", help="replace an existing run folder")
+    m.set_defaults(func=cmd_sim)
+
+    e = sub.add_parser("eval", help="score a pipeline on a run folder",
+                       description="Score as docs/run-format.md defines; prints a table, or "
+                                   "JSON with --json.")
+    e.add_argument("run")
+    e.add_argument("--pipeline", default="fused", help="laser, stereo, stereo-novelty, rgbd, fused")
+    e.add_argument("--config")
+    e.add_argument("--json", action="store_true")
+    e.set_defaults(func=cmd_eval)
+
+    c = sub.add_parser("config", help="configuration tools")
+    csub = c.add_subparsers(dest="config_cmd", required=True, metavar="SUBCOMMAND")
+    cc = csub.add_parser("check", help="validate a config file without starting anything")
+    cc.add_argument("file")
+    cc.set_defaults(func=cmd_config_check)
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    _setup_logging(args.verbose)
+    try:
+        return args.func(args)
+    except FieldguardError as exc:
+        print(f"fieldguard: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

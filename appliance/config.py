@@ -1,0 +1,344 @@
+"""One TOML file, validated into frozen dataclasses.
+
+An unknown key, a value of the wrong type or out of range, or an unknown device ``type`` stops
+start-up with a :class:`hal.ConfigError` that names the file and the key. Every key has a
+default, so an empty file (or no file) is a valid configuration for the simulated field.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+from hal.errors import ConfigError
+
+
+def _f(default, *, lo=None, hi=None, choices=None, doc=""):
+    """A config field with its validation rules."""
+    meta = {"lo": lo, "hi": hi, "choices": choices, "doc": doc}
+    if isinstance(default, (list, dict)):
+        return field(default_factory=lambda: default, metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    rate_hz: float = _f(10.0, lo=1.0, hi=100.0, doc="cycle rate of the loop")
+    lag_cycles_fault: int = _f(3, lo=1, hi=100, doc="consecutive overrun cycles that are a fault")
+    budget_acquire_ms: float = _f(10.0, lo=0.1)
+    budget_perception_ms: float = _f(60.0, lo=0.1)
+    budget_fusion_ms: float = _f(10.0, lo=0.1)
+    budget_gate_ms: float = _f(5.0, lo=0.1)
+    budget_send_ms: float = _f(10.0, lo=0.1)
+
+
+@dataclass(frozen=True)
+class GateConfig:
+    hold_off_s: float = _f(1.0, lo=0.0, hi=60.0, doc="zone clear this long before a stop is released")
+    required: tuple = _f((), doc="device names that must be fresh for CLEAR; empty = every device")
+
+
+@dataclass(frozen=True)
+class ExclusionZone:
+    """A box in the vehicle frame that is never an obstacle (the vehicle's own implement)."""
+
+    x_min_m: float = _f(0.0)
+    x_max_m: float = _f(0.0)
+    y_min_m: float = _f(0.0)
+    y_max_m: float = _f(0.0)
+
+
+@dataclass(frozen=True)
+class ZonesConfig:
+    front_x_m: float = _f(2.6, lo=-10, hi=20, doc="front of the vehicle, metres ahead of its origin")
+    half_width_m: float = _f(1.0, lo=0.1, hi=20, doc="half the width of the swept path incl. margin")
+    reaction_time_s: float = _f(0.5, lo=0.0, hi=5.0)
+    decel_mps2: float = _f(2.0, lo=0.1, hi=10.0, doc="braking deceleration the vehicle can rely on")
+    margin_m: float = _f(1.0, lo=0.0, hi=20.0)
+    min_stop_m: float = _f(2.0, lo=0.0, hi=50.0, doc="shortest stop zone, at standstill")
+    slow_extra_m: float = _f(5.0, lo=0.0, hi=50.0, doc="slow-down zone beyond the stop zone")
+    slow_speed_mps: float = _f(1.0, lo=0.0, hi=20.0)
+    exclusion: tuple = _f((), doc="list of {x_min_m, x_max_m, y_min_m, y_max_m}")
+
+
+@dataclass(frozen=True)
+class GridConfig:
+    cell_m: float = _f(0.1, lo=0.01, hi=1.0)
+    x_min_m: float = _f(-2.0)
+    x_max_m: float = _f(30.0)
+    y_min_m: float = _f(-15.0)
+    y_max_m: float = _f(15.0)
+    decay: float = _f(0.5, lo=0.0, hi=0.99, doc="evidence kept from one cycle to the next")
+    occupied_at: float = _f(1.4, lo=0.1, hi=100.0,
+                            doc="evidence to call a cell occupied (1.0 = one frame is enough)")
+
+
+@dataclass(frozen=True)
+class LaserPipelineConfig:
+    min_range_m: float = _f(0.3, lo=0.0)
+    max_range_m: float = _f(30.0, lo=0.1)
+    use_attitude: bool = _f(False, doc="project hits with the vehicle's roll/pitch (not in the paper)")
+    min_height_m: float = _f(-100.0, doc="with use_attitude: drop hits lower than this")
+
+
+@dataclass(frozen=True)
+class PerceptionConfig:
+    pipelines: tuple = _f(("laser",), doc="pipelines the daemon runs (registry names)")
+    optional: tuple = _f((), doc="pipelines that may be skipped when the budget is short")
+    laser: LaserPipelineConfig = field(default_factory=LaserPipelineConfig)
+    extra: Mapping = field(default_factory=dict)   # tables of pipelines registered later
+
+
+@dataclass(frozen=True)
+class DeviceConfig:
+    name: str
+    kind: str
+    type: str
+    timeout_s: float
+    required: bool
+    options: Mapping
+
+
+@dataclass(frozen=True)
+class StatusConfig:
+    socket: str = _f("", doc="status socket path; empty = $RUNTIME_DIRECTORY or /tmp")
+    incident_dir: str = _f("", doc="where incident snapshots go; empty = none")
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    scene: str = _f("stubble-day")
+    seed: int = _f(0, lo=0)
+    stereo_scale: float = _f(0.5, lo=0.1, hi=1.0)
+    pace: float = _f(1.0, lo=0.0, hi=100.0, doc="1 = real time, 0 = as fast as possible")
+
+
+@dataclass(frozen=True)
+class Config:
+    source: str = "<defaults>"
+    loop: LoopConfig = field(default_factory=LoopConfig)
+    gate: GateConfig = field(default_factory=GateConfig)
+    zones: ZonesConfig = field(default_factory=ZonesConfig)
+    grid: GridConfig = field(default_factory=GridConfig)
+    perception: PerceptionConfig = field(default_factory=PerceptionConfig)
+    devices: tuple = ()                      # tuple[DeviceConfig, ...]
+    status: StatusConfig = field(default_factory=StatusConfig)
+    sim: SimConfig = field(default_factory=SimConfig)
+
+    def device(self, name: str) -> DeviceConfig | None:
+        for d in self.devices:
+            if d.name == name:
+                return d
+        return None
+
+
+DEVICE_KINDS = ("stereo", "rgbd", "laser", "trigger", "link")
+_DEVICE_COMMON = {"type", "timeout_s", "required"}
+
+
+# ------------------------------------------------------------------------------------------------
+def _check_value(value, ftype, meta, key, file):
+    origin = typing.get_origin(ftype)
+    if ftype is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"must be a number, got {value!r}", file=file, key=key)
+        value = float(value)
+        if not math.isfinite(value):
+            raise ConfigError(f"must be finite, got {value!r}", file=file, key=key)
+    elif ftype is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"must be a whole number, got {value!r}", file=file, key=key)
+    elif ftype is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"must be true or false, got {value!r}", file=file, key=key)
+    elif ftype is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"must be a string, got {value!r}", file=file, key=key)
+    elif ftype is tuple or origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"must be a list, got {value!r}", file=file, key=key)
+        value = tuple(value)
+    lo, hi, choices = meta.get("lo"), meta.get("hi"), meta.get("choices")
+    if lo is not None and value < lo:
+        raise ConfigError(f"must be >= {lo}, got {value!r}", file=file, key=key)
+    if hi is not None and value > hi:
+        raise ConfigError(f"must be <= {hi}, got {value!r}", file=file, key=key)
+    if choices is not None and value not in choices:
+        raise ConfigError(f"must be one of {', '.join(map(str, choices))}; got {value!r}",
+                          file=file, key=key)
+    return value
+
+
+def build_section(cls, data: Mapping[str, Any], key: str, file: str, skip=()):
+    """Build frozen dataclass ``cls`` from a TOML table, naming file and key on any error."""
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"must be a table, got {data!r}", file=file, key=key)
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    kwargs = {}
+    for k, v in data.items():
+        full = f"{key}.{k}" if key else k
+        if k in skip:
+            continue
+        if k not in fields or k in ("source", "extra"):
+            known = ", ".join(n for n in fields if n not in ("source", "extra"))
+            raise ConfigError(f"unknown key (known keys here: {known})", file=file, key=full)
+        ftype = hints[k]
+        if dataclasses.is_dataclass(ftype):
+            kwargs[k] = build_section(ftype, v, full, file)
+        else:
+            kwargs[k] = _check_value(v, ftype, fields[k].metadata, full, file)
+    return cls(**kwargs)
+
+
+def _parse_exclusions(items, file):
+    out = []
+    for i, item in enumerate(items):
+        z = build_section(ExclusionZone, item, f"zones.exclusion[{i}]", file)
+        if z.x_max_m <= z.x_min_m or z.y_max_m <= z.y_min_m:
+            raise ConfigError("needs x_max_m > x_min_m and y_max_m > y_min_m", file=file,
+                              key=f"zones.exclusion[{i}]")
+        out.append(z)
+    return tuple(out)
+
+
+def _parse_devices(data, file) -> tuple[DeviceConfig, ...]:
+    from drivers.registry import driver_class, known_types  # lazy: validation needs the schema
+    if not isinstance(data, Mapping):
+        raise ConfigError("must be a table of devices", file=file, key="devices")
+    out = []
+    for name, table in data.items():
+        key = f"devices.{name}"
+        if not isinstance(table, Mapping):
+            raise ConfigError("must be a table", file=file, key=key)
+        kind = table.get("kind", name)
+        if kind not in DEVICE_KINDS:
+            raise ConfigError(f"unknown device kind {kind!r}: name the table one of "
+                              f"{', '.join(DEVICE_KINDS)} or give kind = ...", file=file, key=key)
+        if "type" not in table:
+            raise ConfigError(f"needs a type (one of {', '.join(known_types(kind))})",
+                              file=file, key=key)
+        dtype = table["type"]
+        try:
+            cls = driver_class(kind, dtype)
+        except KeyError:
+            raise ConfigError(f"unknown type {dtype!r} for a {kind} device; known types: "
+                              f"{', '.join(known_types(kind))}", file=file, key=f"{key}.type")
+        schema = dict(getattr(cls, "options_schema", {}))
+        opts = {}
+        for k, v in table.items():
+            if k in _DEVICE_COMMON or k == "kind":
+                continue
+            if k not in schema:
+                known = ", ".join(sorted(set(schema) | _DEVICE_COMMON)) or "none"
+                raise ConfigError(f"unknown key for a {dtype!r} {kind} (known: {known})",
+                                  file=file, key=f"{key}.{k}")
+            opts[k] = _check_value(v, schema[k], {}, f"{key}.{k}", file)
+        timeout = _check_value(table.get("timeout_s", getattr(cls, "default_timeout_s", 0.25)),
+                               float, {"lo": 0.001, "hi": 60.0}, f"{key}.timeout_s", file)
+        required = _check_value(table.get("required", True), bool, {}, f"{key}.required", file)
+        out.append(DeviceConfig(name=name, kind=kind, type=dtype, timeout_s=timeout,
+                                required=required, options=types.MappingProxyType(opts)))
+    return tuple(out)
+
+
+def parse_config(data: Mapping[str, Any], file: str = "<config>") -> Config:
+    data = dict(data)
+    sections = {}
+    known = {f.name for f in dataclasses.fields(Config)} - {"source"}
+    for k in data:
+        if k not in known:
+            raise ConfigError(f"unknown section (known: {', '.join(sorted(known))})",
+                              file=file, key=k)
+    for name, cls in (("loop", LoopConfig), ("gate", GateConfig), ("grid", GridConfig),
+                      ("status", StatusConfig), ("sim", SimConfig)):
+        if name in data:
+            sections[name] = build_section(cls, data[name], name, file)
+    if "zones" in data:
+        z = dict(data["zones"]) if isinstance(data["zones"], Mapping) else data["zones"]
+        excl = z.pop("exclusion", []) if isinstance(z, dict) else []
+        zc = build_section(ZonesConfig, z, "zones", file)
+        sections["zones"] = dataclasses.replace(zc, exclusion=_parse_exclusions(excl, file))
+    if "perception" in data:
+        sections["perception"] = _parse_perception(data["perception"], file)
+    if "devices" in data:
+        sections["devices"] = _parse_devices(data["devices"], file)
+    cfg = Config(source=file, **sections)
+    _cross_check(cfg, file)
+    return cfg
+
+
+def _parse_perception(data, file) -> PerceptionConfig:
+    from appliance.perception import known_pipelines, pipeline_config_class
+    if not isinstance(data, Mapping):
+        raise ConfigError("must be a table", file=file, key="perception")
+    names = known_pipelines()
+    base = {k: v for k, v in data.items() if k in ("pipelines", "optional", "laser")}
+    pc = build_section(PerceptionConfig, base, "perception", file)
+    extra = {}
+    for k, v in data.items():
+        if k in base:
+            continue
+        cls = pipeline_config_class(k)
+        if cls is None:
+            raise ConfigError(f"unknown key (known: pipelines, optional, "
+                              f"{', '.join(names)})", file=file, key=f"perception.{k}")
+        extra[k] = build_section(cls, v, f"perception.{k}", file)
+    for p in tuple(pc.pipelines) + tuple(pc.optional):
+        if p not in names:
+            raise ConfigError(f"unknown pipeline {p!r}; known: {', '.join(names)}",
+                              file=file, key="perception.pipelines")
+    return dataclasses.replace(pc, extra=types.MappingProxyType(extra))
+
+
+def _cross_check(cfg: Config, file: str) -> None:
+    g = cfg.grid
+    if g.x_max_m <= g.x_min_m or g.y_max_m <= g.y_min_m:
+        raise ConfigError("needs x_max_m > x_min_m and y_max_m > y_min_m", file=file, key="grid")
+    if cfg.perception.laser.max_range_m <= cfg.perception.laser.min_range_m:
+        raise ConfigError("max_range_m must exceed min_range_m", file=file,
+                          key="perception.laser")
+    names = {d.name for d in cfg.devices}
+    for r in cfg.gate.required:
+        if cfg.devices and r not in names:
+            raise ConfigError(f"names device {r!r}, which is not configured "
+                              f"(configured: {', '.join(sorted(names))})", file=file,
+                              key="gate.required")
+    if not set(cfg.perception.optional) <= set(cfg.perception.pipelines):
+        raise ConfigError("every optional pipeline must also be listed in pipelines",
+                          file=file, key="perception.optional")
+
+
+def load_config(path: str | Path) -> Config:
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError("file not found", file=str(p))
+    except OSError as exc:
+        raise ConfigError(f"cannot read: {exc.strerror}", file=str(p))
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"not valid TOML: {exc}", file=str(p))
+    return parse_config(data, str(p))
+
+
+def default_config() -> Config:
+    return Config()
+
+
+def pipeline_options(cfg: Config, name: str):
+    """The options dataclass of pipeline ``name`` (its defaults when the file has no table)."""
+    if name == "laser":
+        return cfg.perception.laser
+    if name in cfg.perception.extra:
+        return cfg.perception.extra[name]
+    from appliance.perception import pipeline_config_class
+    cls = pipeline_config_class(name)
+    return cls() if cls is not None else None

@@ -1,0 +1,139 @@
+"""The supervised daemon: builds devices from the config through the driver registry, runs the
+loop, serves status, and on the way out tells every link STOP."""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import signal
+import threading
+import types
+from pathlib import Path
+
+from appliance.config import Config, DeviceConfig
+from appliance.loop import ApplianceLoop
+from appliance.perception import make_pipeline
+from appliance.status import StatusServer
+from drivers.registry import create_device
+from hal.clock import Clock, ManualClock, MonotonicClock
+from hal.devices import Device
+from hal.errors import ConfigError, DeviceError
+
+log = logging.getLogger("fieldguard.daemon")
+
+_PIPELINE_SENSORS = {"laser": ("laser",), "stereo": ("stereo",), "stereo-novelty": ("stereo",),
+                     "rgbd": ("rgbd",)}
+
+
+def _dev(name, kind, type_, timeout_s=0.25, **opts) -> DeviceConfig:
+    return DeviceConfig(name=name, kind=kind, type=type_, timeout_s=timeout_s, required=True,
+                        options=types.MappingProxyType(opts))
+
+
+def sim_config(cfg: Config, scene: str | None = None) -> Config:
+    """The config for ``--sim``: the file's settings, with simulated devices for every sensor the
+    configured pipelines need (unless the file already names sim devices)."""
+    sim = cfg.sim if scene is None else dataclasses.replace(cfg.sim, scene=scene)
+    if any(d.type == "sim" for d in cfg.devices):
+        return dataclasses.replace(cfg, sim=sim)
+    sensors = []
+    for p in cfg.perception.pipelines:
+        for s in _PIPELINE_SENSORS.get(p, ()):
+            if s not in sensors:
+                sensors.append(s)
+    devs = tuple(_dev(s, s, "sim") for s in sensors) + (_dev("link", "link", "sim"),)
+    return dataclasses.replace(cfg, sim=sim, devices=devs)
+
+
+def replay_config(cfg: Config, run_path: str) -> Config:
+    from drivers.runfolder import RunReader
+    info = RunReader(run_path).info
+    devs = [_dev(s, s, "replay") for s in ("stereo", "rgbd", "laser")
+            if getattr(info, s) is not None]
+    devs.append(_dev("link", "link", "replay"))
+    return dataclasses.replace(cfg, devices=tuple(devs))
+
+
+class Daemon:
+    def __init__(self, cfg: Config, *, mode: str = "hardware", replay_path: str | None = None,
+                 pace: float | None = None, status_socket: str | None = None,
+                 clock: Clock | None = None, serve_status: bool = True):
+        if mode not in ("hardware", "sim", "replay"):
+            raise ValueError(mode)
+        if not cfg.devices:
+            raise ConfigError("no [devices] configured: give a config with devices, or run "
+                              "with --sim or --replay RUN", file=cfg.source)
+        self.cfg = cfg
+        self.mode = mode
+        self.clock = clock or (MonotonicClock() if mode == "hardware" else ManualClock(10**9))
+        self.pace = pace if pace is not None else (cfg.sim.pace if mode == "sim" else
+                                                   (1.0 if mode == "replay" else None))
+        if mode == "hardware":
+            self.pace = None
+        self.shared = {"sim_config": cfg.sim, "replay_path": replay_path,
+                       "rate_hz": cfg.loop.rate_hz,
+                       "sim_sensors": tuple(d.kind for d in cfg.devices
+                                            if d.type == "sim" and d.kind != "link")}
+        self.devices: dict[str, Device] = {}
+        self.stop_event = threading.Event()
+        self.status_socket = status_socket if status_socket is not None else cfg.status.socket
+        self.serve_status = serve_status
+        self.status_server: StatusServer | None = None
+        self.loop: ApplianceLoop | None = None
+        self.pipelines = []
+
+    # -------------------------------------------------------------------------------------
+    def start(self) -> None:
+        for dc in self.cfg.devices:
+            dev = create_device(dc, self.clock, self.shared)
+            self.devices[dc.name] = dev
+        for name, dev in self.devices.items():
+            try:
+                dev.open()
+            except DeviceError as exc:
+                # a device that does not open is a fault (STOP), not a crash: the loop runs
+                dev._fault(f"could not open: {exc}")
+                log.error("%s: could not open: %s", name, exc)
+            if type(dev)._acquire_once is not Device._acquire_once:
+                dev.start_acquisition()
+        self.pipelines = [make_pipeline(n, self.cfg) for n in self.cfg.perception.pipelines]
+        self.loop = ApplianceLoop(self.cfg, self.clock, self.devices, self.pipelines,
+                                  kinds={d.name: d.kind for d in self.cfg.devices})
+        if self.serve_status:
+            self.status_server = StatusServer(self.status_socket, self.status)
+            self.status_server.start()
+        log.info("fieldguard up: mode=%s devices=%s pipelines=%s status=%s", self.mode,
+                 ",".join(self.devices), ",".join(p.name for p in self.pipelines),
+                 self.status_server.path if self.status_server else "-")
+
+    def status(self) -> dict:
+        doc = self.loop.status() if self.loop else {"state": "STOP", "reason": "starting"}
+        doc["mode"] = self.mode
+        doc["config"] = self.cfg.source
+        hub = self.shared.get("sim_hub")
+        if hub is not None:
+            doc["sim"] = {"scene": self.cfg.sim.scene, **hub.field.stats()}
+        return doc
+
+    def run(self, max_cycles: int | None = None) -> None:
+        self.loop.run(self.stop_event, max_cycles=max_cycles, pace=self.pace)
+
+    def request_stop(self, *_args) -> None:
+        self.stop_event.set()
+
+    def install_signal_handlers(self) -> None:
+        signal.signal(signal.SIGTERM, self.request_stop)
+        signal.signal(signal.SIGINT, self.request_stop)
+
+    def shutdown(self) -> None:
+        if self.loop is not None:
+            self.loop.send_stop_everywhere("fieldguard shutting down")
+        for p in self.pipelines:
+            try:
+                p.close()
+            except Exception:
+                log.exception("closing pipeline %s", p.name)
+        for dev in self.devices.values():
+            dev.close()
+        if self.status_server is not None:
+            self.status_server.stop()
+        log.info("fieldguard stopped")

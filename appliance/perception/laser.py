@@ -1,0 +1,48 @@
+"""The planar-laser pipeline: the stereo paper's baseline.
+
+Every return in range becomes an obstacle point in the vehicle frame, with the scan plane
+assumed parallel to the ground (as the paper mounted its SICK LMS151 at 0.7 m). On bouncing
+ground over stubble that assumption fails and stubble returns become obstacles: the paper's
+finding, and why this pipeline is a baseline. ``use_attitude`` (our addition) projects each hit
+with the mount and the vehicle's roll and pitch and drops hits lower than ``min_height_m``.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from appliance.config import LaserPipelineConfig
+from hal.types import rotation_rpy
+
+from .base import Detections, Pipeline, SensorInputs
+
+
+class LaserPipeline(Pipeline):
+    name = "laser"
+    requires = ("laser",)
+    config_class = LaserPipelineConfig
+
+    def process(self, inputs: SensorInputs) -> Detections:
+        scan = inputs.laser
+        o: LaserPipelineConfig = self.options
+        r = np.asarray(scan.ranges_m, dtype=np.float64)
+        geo = scan.geometry
+        if r.shape != (geo.beams,):
+            raise ValueError(f"laser scan has {r.shape} ranges, geometry says {geo.beams} beams")
+        ang = geo.angles_rad()
+        ok = np.isfinite(r) & (r >= o.min_range_m) & (r <= min(o.max_range_m, geo.range_max_m))
+        r, ang = r[ok], ang[ok]
+        local = np.stack([r * np.cos(ang), r * np.sin(ang), np.zeros_like(r)], axis=1)
+        m = geo.mount
+        if o.use_attitude and inputs.vehicle is not None:
+            v = inputs.vehicle
+            rot = rotation_rpy(v.roll_rad, v.pitch_rad, 0.0) @ m.rotation()
+            pts = local @ rot.T + m.position
+            keep = pts[:, 2] >= o.min_height_m
+            pts = pts[keep]
+        else:
+            # the paper's assumption: the scan plane is parallel to the ground (mount yaw only)
+            c, s = np.cos(np.radians(m.yaw_deg)), np.sin(np.radians(m.yaw_deg))
+            pts = np.stack([m.x_m + c * local[:, 0] - s * local[:, 1],
+                            m.y_m + s * local[:, 0] + c * local[:, 1]], axis=1)
+        return Detections(points_xy=pts[:, :2].astype(np.float32),
+                          debug={"returns": int(ok.sum()), "beams": geo.beams})

@@ -1,0 +1,72 @@
+"""Zones in front of the vehicle, and the obstacle picture the gate decides on.
+
+The stop zone runs from the vehicle's front for the distance it needs to stop at its present
+speed: reaction time x speed + speed^2 / (2 x deceleration) + a margin, never shorter than
+``min_stop_m``. A slow-down zone lies beyond it. Cells inside exclusion boxes (the vehicle's own
+implement) are never obstacles.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from appliance.config import ZonesConfig
+from hal.types import ObstacleSector
+
+
+@dataclass(frozen=True)
+class ZoneVerdict:
+    stop_len_m: float
+    slow_len_m: float
+    in_stop: int                 # occupied cells in the stop zone
+    in_slow: int
+    nearest_m: float | None      # nearest occupied cell ahead within the path, from the front
+    sectors: tuple[ObstacleSector, ...]
+
+
+def stop_length(speed_mps: float, z: ZonesConfig) -> float:
+    v = max(0.0, speed_mps)
+    return max(z.min_stop_m, v * z.reaction_time_s + v * v / (2 * z.decel_mps2) + z.margin_m)
+
+
+def drop_excluded(cells_xy: np.ndarray, z: ZonesConfig) -> np.ndarray:
+    if not len(z.exclusion) or not len(cells_xy):
+        return cells_xy
+    keep = np.ones(len(cells_xy), bool)
+    for e in z.exclusion:
+        inside = ((cells_xy[:, 0] >= e.x_min_m) & (cells_xy[:, 0] <= e.x_max_m)
+                  & (cells_xy[:, 1] >= e.y_min_m) & (cells_xy[:, 1] <= e.y_max_m))
+        keep &= ~inside
+    return cells_xy[keep]
+
+
+def sectors(cells_xy: np.ndarray, n: int = 72, fov_deg: float = 180.0,
+            max_m: float = 30.0) -> tuple[ObstacleSector, ...]:
+    """Nearest occupied cell per angular sector ahead (for OBSTACLE_DISTANCE-style messages)."""
+    inc = fov_deg / n
+    edges = -fov_deg / 2 + inc * np.arange(n + 1)
+    near = np.full(n, np.inf)
+    if len(cells_xy):
+        ang = np.degrees(np.arctan2(-cells_xy[:, 1], cells_xy[:, 0]))   # clockwise-positive, FRD
+        dist = np.hypot(cells_xy[:, 0], cells_xy[:, 1])
+        idx = np.floor((ang - edges[0]) / inc).astype(int)
+        ok = (idx >= 0) & (idx < n) & (dist <= max_m)
+        np.minimum.at(near, idx[ok], dist[ok])
+    return tuple(ObstacleSector(float(edges[i]), float(edges[i + 1]),
+                                None if not math.isfinite(near[i]) else float(near[i]))
+                 for i in range(n))
+
+
+def assess(cells_xy: np.ndarray, speed_mps: float, z: ZonesConfig) -> ZoneVerdict:
+    cells = drop_excluded(np.asarray(cells_xy, dtype=np.float64).reshape(-1, 2), z)
+    stop_len = stop_length(speed_mps, z)
+    slow_len = stop_len + z.slow_extra_m
+    ahead = cells[:, 0] - z.front_x_m if len(cells) else np.zeros(0)
+    in_path = np.abs(cells[:, 1]) <= z.half_width_m if len(cells) else np.zeros(0, bool)
+    fwd = in_path & (ahead >= 0)
+    in_stop = int(np.count_nonzero(fwd & (ahead <= stop_len)))
+    in_slow = int(np.count_nonzero(fwd & (ahead > stop_len) & (ahead <= slow_len)))
+    nearest = float(ahead[fwd].min()) if np.any(fwd) else None
+    return ZoneVerdict(stop_len, slow_len, in_stop, in_slow, nearest, sectors(cells))

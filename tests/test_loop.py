@@ -1,0 +1,171 @@
+import threading
+
+import numpy as np
+import pytest
+
+from appliance.config import Config, GateConfig, GridConfig, LoopConfig
+from appliance.loop import ApplianceLoop
+from appliance.perception import Pipeline, make_pipeline
+from appliance.perception.base import Detections
+from hal import GateState, ManualClock
+from tests.fakes import HandLaser, HandLink
+
+P = 100_000_000  # 100 ms
+
+
+def make(hold_off=0.3, **loop_kw):
+    clock = ManualClock(10**9)
+    cfg = Config(gate=GateConfig(hold_off_s=hold_off), loop=LoopConfig(**loop_kw),
+                 grid=GridConfig(occupied_at=1.0))
+    laser, link = HandLaser("laser", clock), HandLink("link", clock)
+    loop = ApplianceLoop(cfg, clock, {"laser": laser, "link": link}, [make_pipeline("laser", cfg)])
+    return clock, loop, laser, link
+
+
+def step(clock, loop, n=1):
+    out = None
+    for _ in range(n):
+        out = loop.cycle()
+        clock.advance(P)
+    return out
+
+
+def test_boot_stop_then_clear_after_hold_off():
+    clock, loop, laser, link = make(hold_off=0.3)
+    states = [step(clock, loop).output.state for _ in range(6)]
+    assert states[0] is GateState.STOP
+    assert states[:3] == [GateState.STOP] * 3 and states[3] is GateState.CLEAR
+    assert len(link.sent) == 6 and link.sent[-1].state is GateState.CLEAR
+
+
+def test_obstacle_in_stop_zone_stops():
+    clock, loop, laser, link = make()
+    step(clock, loop, 6)
+    laser.put_obstacle(4.0, 0.0)
+    r = step(clock, loop)
+    assert r.output.state is GateState.STOP
+    assert "stop zone" in r.output.reason
+    laser.clear()
+    laser.put_obstacle(8.0, 0.2)          # beyond the 2 m stop zone, inside the slow zone
+    step(clock, loop, 5)
+    assert step(clock, loop).output.state is GateState.SLOW
+
+
+@pytest.mark.parametrize("fault", ["silent", "aged", "exception", "link_silent"])
+def test_stale_or_broken_source_stops_within_two_cycles(fault):
+    clock, loop, laser, link = make()
+    step(clock, loop, 6)
+    assert loop.gate.state is GateState.CLEAR
+    if fault == "silent":           # cable out: no more data
+        laser.silent = True
+    elif fault == "aged":           # data arrives but is older than the timeout
+        laser.age_s = 0.5
+    elif fault == "exception":
+        laser.raise_on_service = OSError("EIO reading /dev/ttyUSB0")
+    else:
+        link.silent = True
+    states = []
+    for _ in range(2 + int(laser.timeout_s * 10)):
+        states.append(step(clock, loop).output)
+    # within two cycles of the data going past its timeout (or at once, for a fault)
+    first = next(i for i, o in enumerate(states) if o.state is GateState.STOP)
+    limit = 1 if fault in ("aged", "exception") else int(laser.timeout_s * 10) + 2
+    assert first < limit
+    reason = states[first].reason
+    assert ("laser" in reason) or ("link" in reason)
+    if fault == "exception":
+        assert "EIO" in reason
+
+
+def test_failed_send_is_a_fault():
+    clock, loop, laser, link = make(hold_off=0.0)
+    step(clock, loop, 3)
+    assert loop.gate.state is GateState.CLEAR
+    link.fail = True
+    step(clock, loop)                   # this one did not go out
+    r = step(clock, loop)
+    assert r.output.state is GateState.STOP and "did not go out" in r.output.reason
+    link.fail = False
+    step(clock, loop)
+    assert step(clock, loop).output.state is GateState.CLEAR
+
+
+class SlowPipeline(Pipeline):
+    name = "slow"
+    requires = ("laser",)
+
+    def __init__(self, clock, ms):
+        super().__init__(None)
+        self.clock, self.ms, self.calls = clock, ms, 0
+
+    def process(self, inputs):
+        self.calls += 1
+        self.clock.advance(int(self.ms * 1e6))
+        return Detections()
+
+
+def test_optional_stage_skipped_when_over_budget_and_lag_is_fault():
+    clock = ManualClock(0)
+    cfg = Config(loop=LoopConfig(budget_perception_ms=50, lag_cycles_fault=3),
+                 gate=GateConfig(hold_off_s=0.0))
+    cfg = cfg.__class__(**{**cfg.__dict__,
+                           "perception": cfg.perception.__class__(pipelines=("laser",),
+                                                                  optional=("laser",))})
+    laser, link = HandLaser("laser", clock), HandLink("link", clock)
+    slow = SlowPipeline(clock, 40)
+    slow.name = "laser"                 # registered as the optional one
+    loop = ApplianceLoop(cfg, clock, {"laser": laser, "link": link}, [slow])
+    stop = threading.Event()
+    loop.run(stop, max_cycles=5)
+    # once the estimate (40 ms) is known it still fits in 50 ms: it runs every cycle
+    assert slow.calls == 5 and not loop.skipped
+    slow.ms = 70                        # now it takes longer than its budget...
+    loop.run(stop, max_cycles=3)
+    assert loop.skipped.get("laser", 0) >= 1     # ...so it is skipped once its estimate is known
+    # a mandatory pipeline that overruns the whole period makes the loop lag -> STOP
+    clock2 = ManualClock(0)
+    laser2, link2 = HandLaser("laser", clock2), HandLink("link", clock2)
+    loop2 = ApplianceLoop(Config(gate=GateConfig(hold_off_s=0.0),
+                                 loop=LoopConfig(lag_cycles_fault=3)),
+                          clock2, {"laser": laser2, "link": link2}, [SlowPipeline(clock2, 150)])
+    loop2.run(stop, max_cycles=6)
+    assert loop2.overruns >= 3
+    assert link2.sent[-1].state is GateState.STOP and "lagging" in link2.sent[-1].reason
+
+
+class Exploding(Pipeline):
+    name = "boom"
+    requires = ("laser",)
+
+    def process(self, inputs):
+        raise ValueError("NaN in disparity")
+
+
+def test_pipeline_exception_is_stop_not_crash():
+    clock = ManualClock(0)
+    laser, link = HandLaser("laser", clock), HandLink("link", clock)
+    loop = ApplianceLoop(Config(gate=GateConfig(hold_off_s=0.0)), clock,
+                         {"laser": laser, "link": link}, [Exploding()])
+    for _ in range(3):
+        r = loop.cycle()
+        clock.advance(P)
+    assert r.output.state is GateState.STOP and "NaN in disparity" in r.output.reason
+
+
+def test_no_link_is_stop():
+    clock = ManualClock(0)
+    laser = HandLaser("laser", clock)
+    loop = ApplianceLoop(Config(gate=GateConfig(hold_off_s=0.0)), clock, {"laser": laser},
+                         [make_pipeline("laser")])
+    assert loop.cycle().output.state is GateState.STOP
+
+
+def test_status_document():
+    clock, loop, laser, link = make()
+    step(clock, loop, 4)
+    st = loop.status()
+    assert st["state"] in ("STOP", "CLEAR")
+    assert st["devices"]["laser"]["state"] == "ok"
+    assert st["timing_ms"]["cycle"]["p99"] is not None
+    assert st["last_stops"][0]["reason"].startswith("booting")
+    assert np.isfinite(st["timing_ms"]["perception"]["p50"])
