@@ -281,3 +281,17 @@ def test_evaluate_run_refuses_pipeline_without_its_sensor(tmp_path, monkeypatch)
 def test_evaluate_run_unknown_pipeline(tmp_path):
     with pytest.raises(ConfigError, match="unknown pipeline"):
         evaluate_run(laser_run(tmp_path), "no-such-pipeline")
+
+
+def test_evaluate_contract_example_folder():
+    """The contract's own example (tests/data): the laser sees the person's near face."""
+    import dataclasses
+    from appliance.config import GridConfig, default_config
+    cfg = dataclasses.replace(default_config(), grid=GridConfig(occupied_at=1.0))
+    r = evaluate_run(Path(__file__).parent / "data" / "contract-example", "laser", config=cfg)
+    assert r["run"] == "stubble-day-01" and r["frames"] == 1 and r["frames_total"] == 2
+    assert r["frames_missing_input"] == 1                     # frame 1 has no laser file
+    assert r["obstacle_frames"] == 1 and r["detected_obstacle_frames"] == 1
+    assert r["per_class"]["person"]["obstacles_detected"] == 1
+    assert r["false_positive_frames"] == 0
+    assert r["zone"]["x_min_m"] == 2.0 and r["zone"]["apex_x_m"] == 1.2

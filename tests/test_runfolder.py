@@ -497,3 +497,26 @@ def test_replay_realtime_thread(tmp_path):
         assert laser.newest().seq == 1
     finally:
         laser.close()
+
+
+# ---- the contract's own example, on disk (tests/data/contract-example) ----------------------------
+DATA = Path(__file__).parent / "data" / "contract-example"
+
+
+def test_contract_example_folder():
+    """run.toml and truth copied verbatim from docs/run-format.md; no images (dropped frames),
+    frame 1 has no laser file and no truth."""
+    r = RunReader(DATA)
+    info = r.info
+    assert info.name == "stubble-day-01" and info.rate_hz == 10.0
+    assert info.sensors == ("stereo", "rgbd", "laser")
+    assert info.stereo.camera.width == 1280 and info.stereo.mount.pitch_deg == 15.0
+    assert info.rgbd.depth_unit_m == 0.001 and info.rgbd.mount.x_m == 1.0
+    assert info.laser.beams == 541 and info.laser.angle_min_deg == -135.0
+    assert scored_zone_for(info) == (2.0, 20.0)
+    assert [f.stamp_ns for f in r.frames] == [123_000_000_000, 123_100_000_000]
+    assert r.stereo(0) is None and r.rgbd(0) is None
+    scan = r.laser(0)
+    assert scan.ranges_m.shape == (541,) and np.count_nonzero(np.isfinite(scan.ranges_m)) == 7
+    assert r.laser(1) is None
+    assert r.truth(0)[0]["id"] == "p1" and r.truth(1) is None
