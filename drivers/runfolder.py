@@ -601,6 +601,12 @@ class RunWriter:
             raise ValueError(f"frame index {index} is negative or already written")
         if illumination is not None and illumination not in ILLUMINATIONS:
             raise ValueError(f"illumination must be one of {ILLUMINATIONS}, got {illumination!r}")
+        if truth is not None:
+            for k, o in enumerate(truth):
+                missing = [key for key in _OBSTACLE_REQUIRED if not isinstance(o, dict)
+                           or key not in o]
+                if missing:
+                    raise ValueError(f"truth[{k}] of frame {index} is missing {missing}")
         n = _name(index)
         if stereo is not None:
             if self.stereo_calib is None:

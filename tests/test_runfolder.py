@@ -259,7 +259,13 @@ def test_writer_flushes_each_row(tmp_path):
     w.write_frame(0, 0, laser=LaserScan(0, 0, np.ones(361, np.float32), la))
     r = RunReader(tmp_path / "f")                   # readable while still open
     assert len(r) == 1 and r.laser(0).ranges_m[0] == 1.0
+    with pytest.raises(ValueError, match="length_m"):        # the writer writes only valid truth
+        w.write_frame(1, 1, truth=[{"id": "a", "class": "cow", "x_m": 1, "y_m": 0,
+                                    "width_m": 1}])
+    with pytest.raises(ValueError, match="361"):
+        w.write_frame(1, 1, laser=LaserScan(0, 1, np.ones(5, np.float32), la))
     w.close()
+    assert len(RunReader(tmp_path / "f")) == 1                # nothing half-written
 
 
 # ---- errors name the file -------------------------------------------------------------------------
