@@ -1,0 +1,192 @@
+"""The simulated vehicle: follows the scene's path, obeys the box's gate, bounces on the ground,
+and counts collisions.
+
+- CLEAR: speed up (``accel_mps2``) to the scene's cruise speed; SLOW: go to the slow speed;
+  STOP: brake at ``decel_mps2`` to a stand-still. ``None`` keeps the last command.
+- A collision (the vehicle's footprint overlapping an obstacle's footprint) stops the vehicle
+  dead and is counted once per obstacle. The vehicle may drive on when commanded (the sim lets it
+  pass through an obstacle it has already hit, so one crash does not end a run).
+- Pitch and roll come from the ground under the four wheels plus a small seeded suspension
+  oscillation; positive pitch is nose DOWN (as everywhere in fieldguard), positive roll is
+  right side down.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from hal.types import GateState, rotation_rpy
+
+from .scenes import Scene
+
+
+class Vehicle:
+    def __init__(self, scene: Scene, seed: int = 0, decel_mps2: float = 2.5,
+                 accel_mps2: float = 0.8, start_speed_mps: float | None = None,
+                 start_s_m: float = 0.0):
+        self.scene = scene
+        self.decel_mps2 = float(decel_mps2)
+        self.accel_mps2 = float(accel_mps2)
+        p = scene.path
+        seg = np.hypot(np.diff(p[:, 0]), np.diff(p[:, 1]))
+        self._s = np.concatenate([[0.0], np.cumsum(seg)])
+        yaw = np.arctan2(np.gradient(p[:, 1]), np.gradient(p[:, 0]))
+        self._yaw = np.unwrap(yaw)
+        self.path_length_m = float(self._s[-1])
+        self.s = float(start_s_m)
+        self.speed = float(scene.cruise_mps if start_speed_mps is None else start_speed_mps)
+        self.command = GateState.CLEAR
+        self.time_s = 0.0
+        self.distance_m = 0.0
+        self.stopped_s = 0.0
+        self.collisions = 0
+        self.obstacles_hit: list[str] = []
+        self.finished = False
+        self.yaw_rate = 0.0
+        rng = np.random.default_rng([seed, 7])
+        self._osc = rng.uniform(0, 2 * math.pi, 4)
+        self._osc_f = rng.uniform([1.1, 1.9, 0.9, 1.6], [1.5, 2.6, 1.3, 2.2])
+        self._footprints = [self._footprint_points(o) for o in scene.world.obstacles]
+
+    # ---- path ---------------------------------------------------------------------------------
+    def pose(self) -> tuple[float, float, float]:
+        """World (x, y, yaw) of the vehicle's reference point (middle of the rear axle)."""
+        p = self.scene.path
+        s = min(max(self.s, 0.0), self.path_length_m)
+        x = float(np.interp(s, self._s, p[:, 0]))
+        y = float(np.interp(s, self._s, p[:, 1]))
+        yaw = float(np.interp(s, self._s, self._yaw))
+        return x, y, math.atan2(math.sin(yaw), math.cos(yaw))
+
+    def _curvature(self) -> float:
+        ds = 0.5
+        a = float(np.interp(min(self.s + ds, self.path_length_m), self._s, self._yaw))
+        b = float(np.interp(max(self.s - ds, 0.0), self._s, self._yaw))
+        return (a - b) / (2 * ds)
+
+    # ---- attitude -----------------------------------------------------------------------------
+    def attitude(self) -> tuple[float, float, float]:
+        """(roll_rad, pitch_rad, z_m): from the ground under the wheels + suspension bounce."""
+        x, y, yaw = self.pose()
+        sc = self.scene
+        c, s = math.cos(yaw), math.sin(yaw)
+        wb, tr = sc.wheelbase_m, sc.track_m / 2
+        pts = np.array([[0, tr], [0, -tr], [wb, tr], [wb, -tr]], np.float64)
+        wx = x + pts[:, 0] * c - pts[:, 1] * s
+        wy = y + pts[:, 0] * s + pts[:, 1] * c
+        z = sc.world.ground(wx.astype(np.float32), wy.astype(np.float32)).astype(np.float64)
+        rear, front = (z[0] + z[1]) / 2, (z[2] + z[3]) / 2
+        left, right = (z[0] + z[2]) / 2, (z[1] + z[3]) / 2
+        pitch = math.atan2(rear - front, wb)
+        roll = math.atan2(left - right, 2 * tr)
+        # suspension: amplitude grows with speed
+        k = min(abs(self.speed) / max(sc.cruise_mps, 1e-6), 1.5)
+        a = math.radians(sc.bounce_deg) * k
+        t = self.time_s
+        o, f = self._osc, self._osc_f
+        pitch += a * (0.65 * math.sin(2 * math.pi * f[0] * t + o[0]) +
+                      0.35 * math.sin(2 * math.pi * f[1] * t + o[1]))
+        roll += 0.6 * a * (0.6 * math.sin(2 * math.pi * f[2] * t + o[2]) +
+                           0.4 * math.sin(2 * math.pi * f[3] * t + o[3]))
+        return roll, pitch, float(rear)
+
+    def world_from_vehicle(self) -> tuple[np.ndarray, np.ndarray]:
+        """(R, origin): world = origin + R @ p_vehicle."""
+        x, y, yaw = self.pose()
+        roll, pitch, z = self.attitude()
+        return rotation_rpy(roll, pitch, yaw), np.array([x, y, z])
+
+    # ---- footprint / collisions ---------------------------------------------------------------
+    @staticmethod
+    def _footprint_points(o) -> np.ndarray:
+        """Points covering an obstacle's footprint (world x, y)."""
+        n = 11
+        u = np.linspace(-0.5 * o.length_m, 0.5 * o.length_m, n)
+        v = np.linspace(-0.5 * o.width_m, 0.5 * o.width_m, n)
+        uu, vv = np.meshgrid(u, v)
+        c, s = math.cos(math.radians(o.yaw_deg)), math.sin(math.radians(o.yaw_deg))
+        x = o.x + uu * c - vv * s
+        y = o.y + uu * s + vv * c
+        x, y = x.ravel(), y.ravel()
+        inside = o.height(x.astype(np.float32), y.astype(np.float32)) > 0
+        return np.stack([x[inside], y[inside]], 1)
+
+    def footprint_in_vehicle(self, k: int) -> np.ndarray:
+        """Obstacle k's footprint points in the (level) vehicle frame, (N, 2)."""
+        x, y, yaw = self.pose()
+        c, s = math.cos(yaw), math.sin(yaw)
+        d = self._footprints[k] - np.array([x, y])
+        return np.stack([d[:, 0] * c + d[:, 1] * s, -d[:, 0] * s + d[:, 1] * c], 1)
+
+    def _overlaps(self, k: int, margin: float = 0.0) -> bool:
+        rear, length, width = self.scene.footprint
+        p = self.footprint_in_vehicle(k)
+        return bool(np.any((p[:, 0] >= -rear - margin) & (p[:, 0] <= -rear + length + margin) &
+                           (np.abs(p[:, 1]) <= width / 2 + margin)))
+
+    def clearance_ahead(self, corridor_margin_m: float = 0.3) -> float:
+        """Distance from the vehicle's front to the nearest obstacle footprint in its straight
+        corridor ahead (inf if none)."""
+        rear, length, width = self.scene.footprint
+        front = -rear + length
+        best = math.inf
+        for k, o in enumerate(self.scene.world.obstacles):
+            if o.id in self.obstacles_hit:
+                continue
+            p = self.footprint_in_vehicle(k)
+            m = (np.abs(p[:, 1]) <= width / 2 + corridor_margin_m) & (p[:, 0] > -rear)
+            if m.any():
+                best = min(best, float(p[m, 0].min() - front))
+        return best
+
+    # ---- motion -------------------------------------------------------------------------------
+    def step(self, dt_s: float, command: GateState | None = None) -> None:
+        if dt_s <= 0:
+            return
+        if command is not None:
+            self.command = command
+        sc = self.scene
+        target = {GateState.CLEAR: sc.cruise_mps, GateState.SLOW: sc.slow_mps,
+                  GateState.STOP: 0.0}[self.command]
+        if self.finished:
+            target = 0.0
+        v0 = self.speed
+        if target < v0:
+            v1 = max(target, v0 - self.decel_mps2 * dt_s)
+        else:
+            v1 = min(target, v0 + self.accel_mps2 * dt_s)
+        ds = 0.5 * (v0 + v1) * dt_s
+        self.s += ds
+        if self.s >= self.path_length_m:
+            self.s = self.path_length_m
+            self.finished = True
+            v1 = 0.0
+        self.speed = v1
+        self.distance_m += ds
+        self.time_s += dt_s
+        self.yaw_rate = self.speed * self._curvature()
+        if self.speed < 0.05:
+            self.stopped_s += dt_s
+        x, y, _ = self.pose()
+        for k, o in enumerate(sc.world.obstacles):
+            if o.id in self.obstacles_hit or math.hypot(o.x - x, o.y - y) > o.radius + 3.5:
+                continue
+            if self._overlaps(k):
+                self.collisions += 1
+                self.obstacles_hit.append(o.id)
+                self.speed = 0.0
+                self.yaw_rate = 0.0
+
+    def stats(self) -> dict:
+        return {
+            "collisions": self.collisions,
+            "obstacles_hit": list(self.obstacles_hit),
+            "distance_m": round(self.distance_m, 3),
+            "time_s": round(self.time_s, 3),
+            "stopped_s": round(self.stopped_s, 3),
+            "speed_mps": round(self.speed, 3),
+            "command": self.command.value,
+            "finished": self.finished,
+            "path_length_m": round(self.path_length_m, 1),
+        }
