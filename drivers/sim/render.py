@@ -49,7 +49,7 @@ class View:
 class Lighting:
     mode: str                                   # "day" | "night-strobe" | "greenhouse"
     sun: tuple[float, float, float] = (0.5, 0.3, 0.81)   # unit vector towards the sun (world)
-    strobe_power: float = 60.0
+    strobe_power: float = 30.0
 
 
 class _Timer:

@@ -412,12 +412,13 @@ class World:
             cell = 0.14
             ix = np.floor(xm / cell)
             iz = np.floor(zm / cell)
-            iy = np.floor(ym / 0.3)
+            iy = np.floor(ym / cell)
             hp = hash2(ix * 7919 + iy, iz, self._salt ^ 0xD)
             px = (ix + 0.5) * cell + (unit(hp, 1) - 0.5) * 0.05
+            py = (iy + 0.5) * cell + (unit(hp, 3) - 0.5) * 0.05
             pz = (iz + 0.5) * cell + (unit(hp, 2) - 0.5) * 0.05
-            d2 = (xm - px) ** 2 + (zm - pz) ** 2
-            pep = (unit(hp) > 0.78) & (d2 < 0.035 ** 2) & (zm > 0.25) & (zm < 0.95) & \
+            d2 = (xm - px) ** 2 + (ym - py) ** 2 + ((zm - pz) * 0.8) ** 2
+            pep = (unit(hp) > 0.5) & (d2 < 0.045 ** 2) & (zm > 0.25) & (zm < 0.95) & \
                   (mat[m] == MAT_BUSH)
             c[pep] = np.array([0.16, 0.10, 0.55], f32)
             out[m] = c
