@@ -63,22 +63,34 @@ def unit(h: np.ndarray, k: int = 0) -> np.ndarray:
     return (h >> np.uint32(8)).astype(np.float32) * np.float32(1.0 / (1 << 24))
 
 
+_TILE = 512
+
+
+@lru_cache(maxsize=64)
+def _noise_tile(salt: int) -> np.ndarray:
+    """A seeded 512x512 tile of uniform values (periodic lattice for value noise), padded by one
+    row and column so bilinear neighbours need no wrap."""
+    t = np.random.default_rng(salt & 0xFFFFFFFF).random((_TILE, _TILE), dtype=np.float32)
+    return np.pad(t, ((0, 1), (0, 1)), mode="wrap").ravel()
+
+
 def value_noise(x: np.ndarray, y: np.ndarray, cell_m: float, salt: int) -> np.ndarray:
-    """Smooth value noise in [0, 1): hashed lattice values, smoothstep-bilinear interpolated."""
-    fx = x / np.float32(cell_m)
-    fy = y / np.float32(cell_m)
+    """Smooth value noise in [0, 1): seeded lattice values (period 512 cells), smoothstep-bilinear
+    interpolated."""
+    tile = _noise_tile(int(salt))
+    fx = np.asarray(x, np.float32) / np.float32(cell_m)
+    fy = np.asarray(y, np.float32) / np.float32(cell_m)
     ix = np.floor(fx)
     iy = np.floor(fy)
     tx = fx - ix
     ty = fy - iy
     tx = tx * tx * (3 - 2 * tx)
     ty = ty * ty * (3 - 2 * ty)
-    ix = ix.astype(np.int64)
-    iy = iy.astype(np.int64)
-    v00 = unit(hash2(ix, iy, salt))
-    v10 = unit(hash2(ix + 1, iy, salt))
-    v01 = unit(hash2(ix, iy + 1, salt))
-    v11 = unit(hash2(ix + 1, iy + 1, salt))
+    i0 = (iy.astype(np.int64) & (_TILE - 1)) * (_TILE + 1) + (ix.astype(np.int64) & (_TILE - 1))
+    v00 = tile[i0]
+    v10 = tile[i0 + 1]
+    v01 = tile[i0 + _TILE + 1]
+    v11 = tile[i0 + _TILE + 2]
     a = v00 + (v10 - v00) * tx
     b = v01 + (v11 - v01) * tx
     return (a + (b - a) * ty).astype(np.float32)
@@ -100,30 +112,34 @@ def texture_pyramid(name: str) -> tuple[np.ndarray, ...]:
     return tuple(levels)
 
 
+@lru_cache(maxsize=None)
+def _flat_pyramid(name: str):
+    """All mip levels of a (square, power-of-two) texture in one flat array + per-level offsets."""
+    pyr = texture_pyramid(name)
+    sizes = np.array([p.shape[0] for p in pyr], np.int64)
+    offsets = np.concatenate([[0], np.cumsum(sizes * sizes)[:-1]]).astype(np.int64)
+    return np.concatenate([p.ravel() for p in pyr]), sizes, offsets
+
+
 def sample_texture(name: str, u_m: np.ndarray, v_m: np.ndarray, metres_per_texel: float,
                    footprint_m: np.ndarray | float | None = None) -> np.ndarray:
     """Tile texture ``name`` over the plane, nearest texel at the mip level that matches the
     pixel footprint (so far-away ground averages instead of aliasing into noise)."""
-    pyr = texture_pyramid(name)
+    flat, sizes, offsets = _flat_pyramid(name)
     u = np.asarray(u_m, dtype=np.float32) / np.float32(metres_per_texel)
     v = np.asarray(v_m, dtype=np.float32) / np.float32(metres_per_texel)
     if footprint_m is None:
-        lev = np.zeros(u.shape, np.int32)
+        lev = np.zeros(u.shape, np.int64)
     else:
         ratio = np.maximum(np.asarray(footprint_m, np.float32) / np.float32(metres_per_texel),
                            np.float32(1e-6))
-        lev = np.clip(np.floor(np.log2(ratio) + 0.5), 0, len(pyr) - 1).astype(np.int32)
-        lev = np.broadcast_to(lev, u.shape)
-    out = np.empty(u.shape, np.float32)
-    for L in np.unique(lev):
-        m = lev == L
-        t = pyr[L]
-        s = np.float32(1.0 / (1 << L))
-        n = t.shape[0]
-        iu = np.floor(u[m] * s).astype(np.int64) % t.shape[1]
-        iv = np.floor(v[m] * s).astype(np.int64) % n
-        out[m] = t[iv, iu]
-    return out
+        lev = np.clip(np.floor(np.log2(ratio) + np.float32(0.5)), 0, len(sizes) - 1)
+        lev = np.broadcast_to(lev.astype(np.int64), u.shape)
+    scale = np.ldexp(np.float32(1.0), -lev).astype(np.float32)
+    n = sizes[lev]
+    iu = np.floor(u * scale).astype(np.int64) & (n - 1)
+    iv = np.floor(v * scale).astype(np.int64) & (n - 1)
+    return flat[offsets[lev] + iv * n + iu]
 
 
 # ---------------------------------------------------------------------------------------------
