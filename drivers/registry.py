@@ -24,6 +24,8 @@ _REGISTRY: dict[tuple[str, str], str] = {
     ("rgbd", "replay"): "drivers.replay_devices:ReplayDepthDevice",
     ("link", "replay"): "drivers.replay_devices:ReplayLinkDevice",
     ("link", "log"): "drivers.loglink:LogVehicleLink",
+    ("link", "mavlink"): "drivers.mavlink_link:MavlinkVehicleLink",
+    ("link", "can-j1939"): "drivers.can_link:CanJ1939VehicleLink",
 }
 
 
