@@ -1,0 +1,138 @@
+"""A scripted MAVLink vehicle (ArduPilot Rover-like), a separate process for the link tests.
+
+    python tests/peers/mav_vehicle.py CONNECTION [--sysid 1]
+
+Sends HEARTBEAT (1 Hz, custom_mode = current mode), ATTITUDE and VFR_HUD (20 Hz); answers
+MAV_CMD_DO_SET_MODE with COMMAND_ACK according to the script. Reads commands on stdin, one per
+line; prints one JSON event per line on stdout:
+
+    silent | talk           stop / resume sending anything
+    mode N                  set the current custom mode
+    refuse N                answer the next N DO_SET_MODE with DENIED
+    drop N                  ignore the next N DO_SET_MODE (no ack at all)
+    accept                  answer every DO_SET_MODE with ACCEPTED (default)
+    garbage N               send N malformed packets (bad CRC, truncated, random bytes)
+    nan                     send one ATTITUDE with NaN roll
+    speed V                 ground speed in VFR_HUD
+    quit
+
+Events: {"ev": "ready"}, {"ev": "set_mode", "mode": 4, "confirmation": 0, "answer": "..."},
+{"ev": "rx", "type": "..."} for the first message of each type from the box.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import random
+import sys
+import threading
+import time
+
+os.environ.setdefault("MAVLINK20", "1")
+from pymavlink import mavutil  # noqa: E402
+
+
+def emit(**kw):
+    sys.stdout.write(json.dumps(kw) + "\n")
+    sys.stdout.flush()
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("connection")
+    ap.add_argument("--sysid", type=int, default=1)
+    ap.add_argument("--rate", type=float, default=20.0)
+    a = ap.parse_args()
+    m = mavutil.mavlink_connection(a.connection, source_system=a.sysid, source_component=1,
+                                   dialect="ardupilotmega")
+    st = {"silent": False, "mode": 10, "refuse": 0, "drop": 0, "speed": 1.5, "nan": False}
+    lock = threading.Lock()
+    seen = set()
+
+    def stdin_reader():
+        for line in sys.stdin:
+            parts = line.split()
+            if not parts:
+                continue
+            cmd, arg = parts[0], (parts[1] if len(parts) > 1 else "0")
+            with lock:
+                if cmd == "quit":
+                    os._exit(0)
+                elif cmd in ("silent", "talk"):
+                    st["silent"] = cmd == "silent"
+                elif cmd in ("mode", "refuse", "drop"):
+                    st[cmd] = int(arg)
+                elif cmd == "accept":
+                    st["refuse"] = st["drop"] = 0
+                elif cmd == "speed":
+                    st["speed"] = float(arg)
+                elif cmd == "nan":
+                    st["nan"] = True
+                elif cmd == "garbage":
+                    for i in range(int(arg)):
+                        good = m.mav.attitude_encode(0, 0.1, 0.0, 0.0, 0, 0, 0).pack(m.mav)
+                        bad = bytearray(good)
+                        if i % 3 == 0:
+                            bad[-3] ^= 0xFF                 # bad CRC
+                        elif i % 3 == 1:
+                            bad = bad[:len(bad) // 2]       # truncated
+                        else:
+                            bad = bytearray([0xFD]) + bytearray(random.randbytes(30))
+                        m.write(bytes(bad))
+            emit(ev="ack_cmd", cmd=cmd)
+
+    threading.Thread(target=stdin_reader, daemon=True).start()
+    emit(ev="ready")
+    period = 1.0 / a.rate
+    next_tick, last_hb, t0 = time.monotonic(), 0.0, time.monotonic()
+    while True:
+        now = time.monotonic()
+        if now >= next_tick:
+            next_tick += period
+            with lock:
+                silent, mode, speed = st["silent"], st["mode"], st["speed"]
+                nan, st["nan"] = st["nan"], False
+            if not silent:
+                boot_ms = int((now - t0) * 1000)
+                if now - last_hb >= 1.0:
+                    last_hb = now
+                    m.mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_GROUND_ROVER,
+                                         mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                         mavutil.mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | 128,
+                                         mode, mavutil.mavlink.MAV_STATE_ACTIVE)
+                m.mav.attitude_send(boot_ms, math.nan if nan else 0.02, -0.05, 0.3, 0.0, 0.0,
+                                    0.1)
+                m.mav.vfr_hud_send(speed, speed, 17, 0, 0.0, 0.0)
+        msg = m.recv_match(blocking=True, timeout=max(0.0, min(period, next_tick - now)))
+        if msg is None:
+            continue
+        t = msg.get_type()
+        if t not in seen and t != "BAD_DATA":
+            seen.add(t)
+            emit(ev="rx", type=t, src=[msg.get_srcSystem(), msg.get_srcComponent()])
+        if t == "COMMAND_LONG" and msg.command == mavutil.mavlink.MAV_CMD_DO_SET_MODE:
+            with lock:
+                if st["silent"]:
+                    answer = "silent"
+                elif st["drop"] > 0:
+                    st["drop"] -= 1
+                    answer = "dropped"
+                elif st["refuse"] > 0:
+                    st["refuse"] -= 1
+                    answer = "denied"
+                else:
+                    answer = "accepted"
+                    st["mode"] = int(msg.param2)
+            if answer in ("denied", "accepted"):
+                res = (mavutil.mavlink.MAV_RESULT_ACCEPTED if answer == "accepted"
+                       else mavutil.mavlink.MAV_RESULT_DENIED)
+                m.mav.command_ack_send(msg.command, res, 0, 0, msg.get_srcSystem(),
+                                       msg.get_srcComponent())
+            emit(ev="set_mode", mode=int(msg.param2), confirmation=msg.confirmation,
+                 answer=answer, t=time.monotonic())
+
+
+if __name__ == "__main__":
+    main()
