@@ -56,7 +56,7 @@ class ExclusionZone:
 @dataclass(frozen=True)
 class ZonesConfig:
     front_x_m: float = _f(2.6, lo=-10, hi=20, doc="front of the vehicle, metres ahead of its origin")
-    half_width_m: float = _f(1.0, lo=0.1, hi=20, doc="half the width of the swept path incl. margin")
+    half_width_m: float = _f(1.25, lo=0.1, hi=20, doc="half the width of the swept path incl. margin")
     reaction_time_s: float = _f(0.5, lo=0.0, hi=5.0)
     decel_mps2: float = _f(2.0, lo=0.1, hi=10.0, doc="braking deceleration the vehicle can rely on")
     margin_m: float = _f(1.0, lo=0.0, hi=20.0)

@@ -42,6 +42,7 @@ class Scene:
     wheelbase_m: float
     track_m: float
     bounce_deg: float                 # amplitude of the seeded suspension oscillation
+    detour_offset_m: float = 0.0      # how far the safety driver steers round (0 = never)
 
     @property
     def frame_illumination(self) -> str:
@@ -153,4 +154,5 @@ def build_scene(name: str, seed: int = 0) -> Scene:
     world = World("stubble", seed, obstacles, waves)
     illum = "night-strobe" if name == "stubble-night" else "day"
     return Scene(name, seed, world, illum, path, cruise_mps=2.5, slow_mps=1.0,
-                 footprint=(0.4, 2.6, 1.5), wheelbase_m=1.8, track_m=1.2, bounce_deg=1.2)
+                 footprint=(0.4, 2.6, 1.5), wheelbase_m=1.8, track_m=1.2, bounce_deg=1.2,
+                 detour_offset_m=3.0)

@@ -6,6 +6,16 @@ and counts collisions.
 - A collision (the vehicle's footprint overlapping an obstacle's footprint) stops the vehicle
   dead and is counted once per obstacle. The vehicle may drive on when commanded (the sim lets it
   pass through an obstacle it has already hit, so one crash does not end a run).
+- Operator takeover (``detour_after_s``, stubble scenes): held at STOP for that long before a
+  REAL obstacle (within ``detour_trigger_m`` of the front, from the world, not from the box),
+  the driver takes over and puts the vehicle ``detour_offset_m`` to the left of its path, as if
+  he had backed up and steered round; once past, the vehicle eases back onto its path. A long
+  run can go on after a correct stop; a FALSE stop (nothing really ahead) is never taken over,
+  Counted in ``stats()['detours']``.
+- Operator override (``override_after_s``): held at STOP that long with NOTHING really ahead
+  (a false stop), the driver overrides the box and creeps on at the slow speed for
+  ``override_m``, so a long run goes on and counts its false stops
+  (``stats()['overrides']``) — each one costs the time it waited, as it would in a field.
 - Pitch and roll come from the ground under the four wheels plus a small seeded suspension
   oscillation; positive pitch is nose DOWN (as everywhere in fieldguard), positive roll is
   right side down.
@@ -24,8 +34,22 @@ from .scenes import Scene
 class Vehicle:
     def __init__(self, scene: Scene, seed: int = 0, decel_mps2: float = 2.5,
                  accel_mps2: float = 0.8, start_speed_mps: float | None = None,
-                 start_s_m: float = 0.0):
+                 start_s_m: float = 0.0, detour_after_s: float = 5.0,
+                 detour_offset_m: float | None = None, detour_trigger_m: float = 6.0,
+                 override_after_s: float = 10.0, override_m: float = 5.0):
         self.scene = scene
+        self.detour_after_s = float(detour_after_s)
+        self.detour_offset_m = (scene.detour_offset_m if detour_offset_m is None
+                                else float(detour_offset_m))
+        self.detour_trigger_m = float(detour_trigger_m)
+        self.offset_m = 0.0            # lateral offset from the path (left positive)
+        self._detour_until_s: float | None = None
+        self._held_s = 0.0
+        self.detours = 0
+        self.override_after_s = float(override_after_s)
+        self.override_m = float(override_m)
+        self._override_until_s: float | None = None
+        self.overrides = 0
         self.decel_mps2 = float(decel_mps2)
         self.accel_mps2 = float(accel_mps2)
         p = scene.path
@@ -57,6 +81,9 @@ class Vehicle:
         x = float(np.interp(s, self._s, p[:, 0]))
         y = float(np.interp(s, self._s, p[:, 1]))
         yaw = float(np.interp(s, self._s, self._yaw))
+        if self.offset_m:
+            x -= self.offset_m * math.sin(yaw)
+            y += self.offset_m * math.cos(yaw)
         return x, y, math.atan2(math.sin(yaw), math.cos(yaw))
 
     def _curvature(self) -> float:
@@ -149,6 +176,11 @@ class Vehicle:
         sc = self.scene
         target = {GateState.CLEAR: sc.cruise_mps, GateState.SLOW: sc.slow_mps,
                   GateState.STOP: 0.0}[self.command]
+        if self._override_until_s is not None:
+            if self.s < self._override_until_s and self.clearance_ahead() > self.detour_trigger_m:
+                target = max(target, sc.slow_mps)
+            else:
+                self._override_until_s = None
         if self.finished:
             target = 0.0
         v0 = self.speed
@@ -168,6 +200,7 @@ class Vehicle:
         self.yaw_rate = self.speed * self._curvature()
         if self.speed < 0.05:
             self.stopped_s += dt_s
+        self._operator(dt_s, ds)
         x, y, _ = self.pose()
         for k, o in enumerate(sc.world.obstacles):
             if o.id in self.obstacles_hit or math.hypot(o.x - x, o.y - y) > o.radius + 3.5:
@@ -177,6 +210,43 @@ class Vehicle:
                 self.obstacles_hit.append(o.id)
                 self.speed = 0.0
                 self.yaw_rate = 0.0
+
+    def _operator(self, dt_s: float, ds: float) -> None:
+        """The safety driver: steers round a real obstacle the box has (rightly) stopped for."""
+        if self._detour_until_s is not None and self.s >= self._detour_until_s:
+            # past it: ease back, 0.3 m per metre, only where the way back is free
+            before = self.offset_m
+            self.offset_m = math.copysign(max(0.0, abs(before) - 0.3 * ds), before)
+            if self.clearance_ahead() < 2 * self.detour_trigger_m:
+                self.offset_m = before
+            if self.offset_m == 0.0:
+                self._detour_until_s = None
+        if self.detour_offset_m <= 0 or self.command is not GateState.STOP or self.speed >= 0.05:
+            self._held_s = 0.0
+            return
+        self._held_s += dt_s
+        if self._held_s < self.detour_after_s:
+            return
+        ahead = self.clearance_ahead()
+        if ahead > self.detour_trigger_m:               # a false stop: the driver waits...
+            if self._held_s >= self.override_after_s and self._override_until_s is None:
+                self._override_until_s = self.s + self.override_m    # ...then overrides
+                self.overrides += 1
+                self._held_s = 0.0
+            return
+        d, here = self.detour_offset_m, self.offset_m
+        best, best_clear = here, ahead
+        for off in (here + d, here - d, here + 2 * d, here - 2 * d):
+            self.offset_m = off
+            c = self.clearance_ahead()
+            if c > best_clear + 1e-6:
+                best, best_clear = off, c
+            if c > 3 * self.detour_trigger_m:
+                break
+        self.offset_m = best
+        self._detour_until_s = self.s + ahead + self.scene.footprint[1] + 6.0
+        self.detours += 1
+        self._held_s = 0.0
 
     def stats(self) -> dict:
         return {
@@ -188,5 +258,9 @@ class Vehicle:
             "speed_mps": round(self.speed, 3),
             "command": self.command.value,
             "finished": self.finished,
+            "detours": self.detours,
+            "overrides": self.overrides,
+            "offset_m": round(self.offset_m, 2),
+            "clearance_m": round(min(self.clearance_ahead(), 999.0), 2),
             "path_length_m": round(self.path_length_m, 1),
         }
