@@ -83,7 +83,7 @@ class CanJ1939VehicleLink(VehicleLink):
         self.interface, self.channel, self.bitrate, self.port = interface, channel, bitrate, port
         self.jname = J1939Name.parse(j1939_name)
         self.claimer = AddressClaimer(self.jname, preferred_address)
-        self.dbc_path = dbc
+        self.dbc_path = dbc or DEFAULT_DBC
         self.speed_pgn = speed_pgn
         self.speed_signal, self.direction_signal = speed_signal, direction_signal
         self.speed_source_address = speed_source_address
