@@ -41,17 +41,21 @@ def can_table(text: str) -> dict:
     return {"type": "can-j1939", "interface": iface, "channel": channel}
 
 
-def apply_link_override(devices: dict, table: dict, default_name: str = "link") -> dict:
+def apply_link_override(devices: dict, table: dict, default_name: str = "link",
+                        replace_others: bool = True) -> dict:
     """Return a copy of the raw ``[devices]`` mapping (as read from TOML) with the link of the
     same type replaced by ``table`` — keeping its other options, e.g. sysid — or, if there is
-    none, every other ``link`` device replaced by a new one named ``default_name``."""
+    none, a new link named ``default_name`` added; with ``replace_others`` (the default) the
+    links of other types are dropped then (``--mavlink`` on a sim config replaces the sim link).
+    For ``--mavlink`` and ``--can`` together, call it for the second with
+    ``replace_others=False`` and another ``default_name``."""
     out = dict(devices)
     for name, t in devices.items():
         if isinstance(t, dict) and t.get("kind", name) == "link" and t.get("type") == table["type"]:
             out[name] = {**t, **table}
             return out
     for name, t in list(out.items()):
-        if isinstance(t, dict) and t.get("kind", name) == "link":
+        if replace_others and isinstance(t, dict) and t.get("kind", name) == "link":
             del out[name]
     out[default_name] = dict(table) if default_name == "link" else {"kind": "link", **table}
     return out
