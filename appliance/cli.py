@@ -25,9 +25,37 @@ def _load(path):
 
 
 # ---------------------------------------------------------------------------------------------
+def _load_run_config(a):
+    """The config file (or defaults) with the command line's link overrides applied; the
+    overridden tables go through the same validation as the file's."""
+    if not (a.mavlink or a.can):
+        return _load(a.config)
+    import tomllib
+    from pathlib import Path
+
+    from appliance.config import parse_config
+    from drivers.links_cli import apply_link_override, can_table, mavlink_table
+    data = {}
+    if a.config:
+        try:
+            data = tomllib.loads(Path(a.config).read_text(encoding="utf-8"))
+        except (OSError, tomllib.TOMLDecodeError) as exc:
+            from hal.errors import ConfigError
+            raise ConfigError(f"cannot read: {exc}", file=a.config)
+    devs = data.get("devices", {})
+    if a.mavlink:
+        devs = apply_link_override(devs, mavlink_table(a.mavlink))
+    if a.can:
+        devs = apply_link_override(devs, can_table(a.can),
+                                   default_name="can" if a.mavlink else "link",
+                                   replace_others=not a.mavlink)
+    data["devices"] = devs
+    return parse_config(data, a.config or "<command line>")
+
+
 def cmd_run(a) -> int:
     from appliance.daemon import Daemon, replay_config, sim_config
-    cfg = _load(a.config)
+    cfg = _load_run_config(a)
     if a.sim is not None and a.replay:
         raise FieldguardError("give --sim or --replay, not both")
     if a.sim is not None:
@@ -179,6 +207,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--sim", nargs="?", const="", metavar="SCENE",
                    help="run on the built-in simulated field (default scene: stubble-day)")
     r.add_argument("--replay", metavar="RUN", help="replay a run folder through the loop")
+    r.add_argument("--mavlink", metavar="CONNECTION",
+                   help="MAVLink link instead of the configured one, e.g. udpout:127.0.0.1:14550 "
+                        "or /dev/ttyACM0,921600 (bench tests)")
+    r.add_argument("--can", metavar="INTERFACE:CHANNEL",
+                   help="CAN (J1939) link instead of the configured one, e.g. socketcan:can0")
     r.add_argument("--fast", action="store_true", help="sim/replay as fast as possible")
     r.add_argument("--duration", type=float, help="stop after this many seconds of loop time")
     r.add_argument("--socket", help="status socket path (default: config or runtime dir)")

@@ -31,7 +31,9 @@ def _dev(name, kind, type_, timeout_s=0.25, **opts) -> DeviceConfig:
 
 def sim_config(cfg: Config, scene: str | None = None) -> Config:
     """The config for ``--sim``: the file's settings, with simulated devices for every sensor the
-    configured pipelines need (unless the file already names sim devices)."""
+    configured pipelines need and a simulated vehicle (unless the file already names sim
+    devices). Other links the config names (a MAVLink bench autopilot, a CAN bus) are kept: they
+    are told the same as the simulated vehicle."""
     sim = cfg.sim if scene is None else dataclasses.replace(cfg.sim, scene=scene)
     if any(d.type == "sim" for d in cfg.devices):
         return dataclasses.replace(cfg, sim=sim)
@@ -40,7 +42,10 @@ def sim_config(cfg: Config, scene: str | None = None) -> Config:
         for s in _PIPELINE_SENSORS.get(p, ()):
             if s not in sensors:
                 sensors.append(s)
-    devs = tuple(_dev(s, s, "sim") for s in sensors) + (_dev("link", "link", "sim"),)
+    links = tuple(d for d in cfg.devices if d.kind == "link" and d.name != "link")
+    links += tuple(dataclasses.replace(d, name=f"{d.name}-{d.type}") for d in cfg.devices
+                   if d.kind == "link" and d.name == "link")
+    devs = tuple(_dev(s, s, "sim") for s in sensors) + (_dev("link", "link", "sim"),) + links
     return dataclasses.replace(cfg, sim=sim, devices=devs)
 
 
@@ -50,6 +55,8 @@ def replay_config(cfg: Config, run_path: str) -> Config:
     devs = [_dev(s, s, "replay") for s in ("stereo", "rgbd", "laser")
             if getattr(info, s) is not None]
     devs.append(_dev("link", "link", "replay"))
+    devs += [dataclasses.replace(d, name=f"{d.name}-{d.type}") if d.name == "link" else d
+             for d in cfg.devices if d.kind == "link" and d.type not in ("sim", "replay")]
     return dataclasses.replace(cfg, devices=tuple(devs))
 
 

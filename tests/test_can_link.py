@@ -13,9 +13,11 @@ import time
 
 import pytest
 
-pytest.importorskip("can")
-pytest.importorskip("cantools")
-pytest.importorskip("msgpack")
+from tests.conftest import missing_tool
+
+import can  # noqa: E402,F401
+import cantools  # noqa: E402,F401
+import msgpack  # noqa: E402,F401
 
 from drivers.can_link import DEFAULT_DBC, CanJ1939VehicleLink  # noqa: E402
 from drivers.j1939 import AddressClaimer, ClaimState, J1939Name, crc8_sae_j1850, make_id  # noqa: E402
@@ -80,11 +82,11 @@ def _setns(path: str) -> None:
 @pytest.fixture(scope="module")
 def netns():
     if shutil.which("ip") is None:
-        pytest.skip("iproute2 not installed (tools/ci_system_deps.sh installs it)")
+        missing_tool("iproute2 not installed (tools/ci_system_deps.sh installs it)")
     name = f"fgcan{os.getpid()}"
     r = _ip("netns", "add", name, check=False)
     if r.returncode != 0:
-        pytest.skip(f"cannot create a network namespace here: {r.stderr.strip()}")
+        missing_tool(f"cannot create a network namespace here: {r.stderr.strip()}")
     try:
         for cmd in (["link", "set", "lo", "up"], ["link", "set", "lo", "multicast", "on"],
                     ["route", "add", "224.0.0.0/4", "dev", "lo"]):

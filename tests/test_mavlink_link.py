@@ -12,8 +12,10 @@ from pathlib import Path
 
 import pytest
 
+from tests.conftest import missing_tool
+
 os.environ.setdefault("MAVLINK20", "1")
-mavutil = pytest.importorskip("pymavlink.mavutil")
+from pymavlink import mavutil  # noqa: E402
 
 from drivers.mavlink_link import UINT16_MAX, MavlinkVehicleLink, obstacle_distances  # noqa: E402
 from hal import GateState, MonotonicClock  # noqa: E402
@@ -55,7 +57,7 @@ def test_obstacle_distance_encoding_rules():
 @pytest.fixture(scope="module")
 def rig(tmp_path_factory):
     if MAVPROXY is None:
-        pytest.skip("MAVProxy not installed (pip install --no-deps MAVProxy)")
+        missing_tool("MAVProxy not installed (pip install --no-deps MAVProxy)")
     d = tmp_path_factory.mktemp("mavproxy")
     pv, po = free_udp_port(), free_udp_port()
     mpx = subprocess.Popen([PY, MAVPROXY, f"--master=udpin:127.0.0.1:{pv}",

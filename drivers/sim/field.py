@@ -194,6 +194,12 @@ class SimField:
             d = self.depth_calibration
             c, r, _ = self._sensor_pose(d.mount)
             cams.append(("rgbd", c, r, d.camera, (d.min_range_m, d.max_range_m)))
+        if not cams:
+            # a laser-only run: truth is what the box's stereo camera WOULD see (it is on the
+            # vehicle, just not recorded), so laser runs are scored on the same obstacles
+            sc = stereo_calibration(1.0)
+            c, r, _ = self._sensor_pose(sc.mount)
+            cams.append(("stereo", c, r, sc.camera, STEREO_RANGE_M))
         return cams
 
     def _visible(self, k: int, cams) -> bool:

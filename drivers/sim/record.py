@@ -45,6 +45,9 @@ def write_sim_run(scene: str, frames: int, out: str | Path, seed: int = 0,
                      "cruise_mps": field.scene.cruise_mps,
                      "obstacles": len(field.world.obstacles),
                      "generator": "drivers.sim"}}
+    if "stereo" not in sensors and "rgbd" not in sensors:
+        # no camera in the run: say the zone the stereo camera would score (run-format.md)
+        extra["scored_zone"] = {"x_min_m": 2.0, "x_max_m": 20.0}
     dt_ns = int(round(1e9 / rate_hz))
     first = None
     with RunWriter(out, name or f"{scene}-{seed}", rate_hz=rate_hz,
