@@ -193,6 +193,11 @@ def cmd_config_check(a) -> int:
 
 
 # ---------------------------------------------------------------------------------------------
+# Commands that live in their own modules: each module has ``register(subparsers)`` that adds
+# its sub-parser(s) with ``set_defaults(func=...)``. Add a line here to plug a command in.
+COMMAND_MODULES: list[str] = []
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="fieldguard", description=(
         "fieldguard: obstacle-detection safety box for tractors and sprayers. "
@@ -252,6 +257,10 @@ def build_parser() -> argparse.ArgumentParser:
     cc = csub.add_parser("check", help="validate a config file without starting anything")
     cc.add_argument("file")
     cc.set_defaults(func=cmd_config_check)
+
+    import importlib
+    for mod in COMMAND_MODULES:
+        importlib.import_module(mod).register(sub)
     return p
 
 
