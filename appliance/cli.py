@@ -14,9 +14,8 @@ log = logging.getLogger("fieldguard")
 
 
 def _setup_logging(verbose: bool) -> None:
-    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-                        stream=sys.stderr)
+    from appliance.service import setup_logging
+    setup_logging(verbose)
 
 
 def _load(path):

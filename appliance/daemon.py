@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import signal
+import time
 import threading
 import types
 from pathlib import Path
@@ -12,6 +13,7 @@ from pathlib import Path
 from appliance.config import Config, DeviceConfig
 from appliance.loop import ApplianceLoop
 from appliance.perception import make_pipeline
+from appliance.service import Notifier
 from appliance.status import StatusServer
 from drivers.registry import create_device
 from hal.clock import Clock, ManualClock, MonotonicClock
@@ -63,7 +65,8 @@ def replay_config(cfg: Config, run_path: str) -> Config:
 class Daemon:
     def __init__(self, cfg: Config, *, mode: str = "hardware", replay_path: str | None = None,
                  pace: float | None = None, status_socket: str | None = None,
-                 clock: Clock | None = None, serve_status: bool = True):
+                 clock: Clock | None = None, serve_status: bool = True,
+                 notifier: Notifier | None = None):
         if mode not in ("hardware", "sim", "replay"):
             raise ValueError(mode)
         if not cfg.devices:
@@ -87,6 +90,10 @@ class Daemon:
         self.status_server: StatusServer | None = None
         self.loop: ApplianceLoop | None = None
         self.pipelines = []
+        self.notifier = notifier if notifier is not None else Notifier()
+        self._ready = False
+        self._status_state = None
+        self._status_t = 0.0
 
     # -------------------------------------------------------------------------------------
     def start(self) -> None:
@@ -105,6 +112,7 @@ class Daemon:
         self.pipelines = [make_pipeline(n, self.cfg) for n in self.cfg.perception.pipelines]
         self.loop = ApplianceLoop(self.cfg, self.clock, self.devices, self.pipelines,
                                   kinds={d.name: d.kind for d in self.cfg.devices})
+        self.loop.on_cycle.append(self._notify_cycle)
         if self.serve_status:
             self.status_server = StatusServer(self.status_socket, self.status)
             self.status_server.start()
@@ -112,10 +120,28 @@ class Daemon:
                  ",".join(self.devices), ",".join(p.name for p in self.pipelines),
                  self.status_server.path if self.status_server else "-")
 
+    def _notify_cycle(self, res) -> None:
+        """sd_notify: READY after the first gate cycle; STATUS on change (reason changes at most
+        once a second); WATCHDOG only after a healthy cycle (on time, sent on every link)."""
+        n = self.notifier
+        text = f"{res.output.state.value}: {res.output.reason}"
+        if not self._ready:
+            n.ready(text)
+            self._ready = True
+            self._status_state, self._status_t = res.output.state, time.monotonic()
+        elif res.output.state is not self._status_state or time.monotonic() - self._status_t >= 1:
+            n.status(text)
+            self._status_state, self._status_t = res.output.state, time.monotonic()
+        if res.on_time and res.sent:
+            n.healthy_cycle()
+
     def status(self) -> dict:
         doc = self.loop.status() if self.loop else {"state": "STOP", "reason": "starting"}
         doc["mode"] = self.mode
         doc["config"] = self.cfg.source
+        n = self.notifier
+        doc["systemd"] = {"notify": n.enabled, "watchdog_s": n.watchdog_s,
+                          "last_messages": list(n.sent[-5:]), "errors": n.errors}
         hub = self.shared.get("sim_hub")
         if hub is not None:
             doc["sim"] = {"scene": self.cfg.sim.scene, **hub.field.stats()}
@@ -134,6 +160,7 @@ class Daemon:
     def shutdown(self) -> None:
         if self.loop is not None:
             self.loop.send_stop_everywhere("fieldguard shutting down")
+        self.notifier.stopping("STOP: fieldguard shutting down")
         for p in self.pipelines:
             try:
                 p.close()
@@ -143,4 +170,5 @@ class Daemon:
             dev.close()
         if self.status_server is not None:
             self.status_server.stop()
+        self.notifier.close()
         log.info("fieldguard stopped")

@@ -2,8 +2,11 @@
 used). Real devices at the wire have their own tests."""
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 
+from appliance.perception.base import Detections, Pipeline
 from hal import GateOutput, LaserGeometry, LaserScan, Mount, SafetyLaser, VehicleLink, VehicleState
 
 
@@ -60,3 +63,17 @@ class HandLink(VehicleLink):
             return False
         self.sent.append(output)
         return True
+
+
+class HangPipeline(Pipeline):
+    """Blocks inside process() while ``hang`` is set: a hung loop."""
+
+    name = "hang-test"
+    requires = ("laser",)
+    release = threading.Event()
+    hang = threading.Event()
+
+    def process(self, inputs):
+        if self.hang.is_set():
+            self.release.wait(10)
+        return Detections()
