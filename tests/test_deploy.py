@@ -1,0 +1,101 @@
+"""The unit verifies clean and rates OK; install/uninstall into a throwaway root."""
+import os
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import missing_tool
+
+ROOT = Path(__file__).resolve().parents[1]
+UNIT = ROOT / "deploy" / "fieldguard.service"
+
+
+def need(tool):
+    if shutil.which(tool) is None:
+        missing_tool(f"{tool} not installed")
+
+
+@pytest.fixture(scope="module")
+def installed(tmp_path_factory):
+    need("systemctl")
+    root = tmp_path_factory.mktemp("root")
+    r = subprocess.run(["bash", str(ROOT / "deploy" / "install.sh"), "--root", str(root),
+                        "--pip-args", "--no-deps"], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stdout + r.stderr
+    return root, r.stdout
+
+
+def test_install_lays_out_the_box(installed):
+    root, out = installed
+    assert (root / "opt/fieldguard/venv/bin/fieldguard").exists()
+    assert (root / "etc/fieldguard/fieldguard.toml").read_text() == \
+        (ROOT / "deploy/fieldguard.toml").read_text()
+    assert (root / "etc/udev/rules.d/99-fieldguard.rules").exists()
+    assert (root / "etc/systemd/system/fieldguard.service").exists()
+    wants = root / "etc/systemd/system/multi-user.target.wants/fieldguard.service"
+    assert wants.is_symlink()
+    # the shipped config is valid
+    from appliance.config import load_config
+    assert load_config(root / "etc/fieldguard/fieldguard.toml").devices
+
+
+def test_unit_verifies_clean_in_the_installed_root(installed, tmp_path):
+    need("systemd-analyze")
+    root, _ = installed
+    # verify the installed unit with its paths pointing into the throwaway root, so that
+    # systemd-analyze also checks that ExecStart/ExecStartPre exist as installed
+    unit = tmp_path / "fieldguard.service"
+    unit.write_text((root / "etc/systemd/system/fieldguard.service").read_text()
+                    .replace("/opt/fieldguard/", f"{root}/opt/fieldguard/"))
+    r = subprocess.run(["systemd-analyze", "verify", "--man=no", str(unit)],
+                       capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    text = (r.stdout + r.stderr).strip()
+    # systemd-analyze only warns (rc 0) about unknown keys: the output must be empty
+    assert r.returncode == 0 and text == "", text
+
+
+def test_unit_exposure_is_ok():
+    need("systemd-analyze")
+    r = subprocess.run(["systemd-analyze", "security", "--offline=true", str(UNIT)],
+                       capture_output=True, text=True, timeout=60)
+    m = re.search(r"Overall exposure level for \S+: (\d+\.\d+) (\w+)", r.stdout + r.stderr)
+    assert m, r.stdout[-500:] + r.stderr
+    assert float(m.group(1)) <= 3.0 and m.group(2) == "OK", m.group(0)
+
+
+def test_unit_is_what_the_daemon_expects():
+    text = UNIT.read_text()
+    for key in ("Type=notify", "WatchdogSec=", "Restart=on-failure", "User=fieldguard",
+                "NoNewPrivileges=yes", "ProtectSystem=strict", "RuntimeDirectory=fieldguard"):
+        assert key in text, key
+
+
+def test_upgrade_never_overwrites_the_config_and_uninstall_keeps_it(installed, tmp_path):
+    root, _ = installed
+    cfg = root / "etc/fieldguard/fieldguard.toml"
+    cfg.write_text(cfg.read_text().replace("hold_off_s = 1.0", "hold_off_s = 2.0"))
+    r = subprocess.run(["bash", str(ROOT / "deploy" / "install.sh"), "--root", str(root),
+                        "--pip-args", "--no-deps"], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert "hold_off_s = 2.0" in cfg.read_text()
+    assert (root / "etc/fieldguard/fieldguard.toml.new").exists()
+    assert "kept your" in r.stdout
+    r = subprocess.run(["bash", str(ROOT / "deploy" / "uninstall.sh"), "--root", str(root)],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert not (root / "opt/fieldguard").exists()
+    assert not (root / "etc/systemd/system/fieldguard.service").exists()
+    assert not (root / "etc/systemd/system/multi-user.target.wants/fieldguard.service").exists()
+    assert cfg.exists()
+    r = subprocess.run(["bash", str(ROOT / "deploy" / "uninstall.sh"), "--root", str(root),
+                        "--purge"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and not (root / "etc/fieldguard").exists()
+
+
+def test_install_refuses_unknown_option(tmp_path):
+    r = subprocess.run(["bash", str(ROOT / "deploy" / "install.sh"), "--frobnicate"],
+                       capture_output=True, text=True)
+    assert r.returncode == 2 and "unknown option" in r.stderr
