@@ -16,6 +16,9 @@ from .base import Detections, Pipeline, SensorInputs
 # does not stop the others.
 _PIPELINES: dict[str, str] = {
     "laser": "appliance.perception.laser:LaserPipeline",
+    "rgbd": "appliance.perception.rgbd:RgbdPipeline",
+    "stereo": "appliance.perception.stereo:StereoPipeline",
+    "stereo-novelty": "appliance.perception.stereo_novelty:StereoNoveltyPipeline",
 }
 
 
