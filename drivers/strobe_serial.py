@@ -1,0 +1,344 @@
+"""The strobe/trigger controller on a serial port, and day/night switching.
+
+The controller fires both cameras' hardware trigger inputs at ``rate_hz`` and, at night, a pulsed
+light in step with the exposure. It speaks a small line protocol (documented in
+docs/hardware.md, "Strobe/trigger protocol"): ASCII lines ending in ``\\n``, each ending in
+``*HH``, the XOR of the bytes before the ``*`` in hex (as NMEA 0183), 115200 8N1.
+
+    host -> controller            controller -> host
+    RATE 10.00*HH                 OK RATE 10.00*HH
+    ARM*HH / DISARM*HH            OK ARM*HH / OK DISARM*HH
+    STROBE ON*HH / STROBE OFF*HH  OK STROBE ON*HH
+    STATUS?*HH                    STATUS rate=10.00 armed=1 strobe=0 pulses=1234 fault=0*HH
+    PING*HH                       PONG <model> <firmware>*HH
+    (bad line or checksum)        ERR <code> <text>*HH
+                                  FAULT <code> <text>*HH   (unsolicited, e.g. lamp open circuit)
+
+The driver keeps the controller configured (rate, armed, strobe) and polls STATUS every
+``status_period_s``; each good STATUS is a sample. A FAULT line, a STATUS with ``fault`` not 0,
+a pulse counter that stops climbing while armed (the controller has stopped firing), lines that
+fail the checksum, unanswered commands and a port that goes away all mark the device FAULT; the
+garbage cases are held for ``fault_hold_s`` so the 10 Hz loop cannot miss them. A silent
+controller goes stale after ``timeout_s``. The port is reopened with back-off.
+
+:func:`next_illumination` is the day/night rule (pure): switch to the strobe when the ambient
+brightness falls below ``night_below`` and back only when it rises above ``day_above``.
+"""
+from __future__ import annotations
+
+import queue
+import time
+
+import numpy as np
+
+from hal.devices import StrobeTrigger
+from hal.errors import DeviceError, DeviceOperationError
+
+from .calibration import Backoff
+
+DAY, NIGHT = "day", "night-strobe"
+
+
+# ---------------------------------------------------------------------------------------------
+# day / night
+def scene_brightness(image: np.ndarray, exposure_us: float = 1.0, gain_db: float = 0.0,
+                     ref_exposure_us: float = 1.0) -> float:
+    """Mean luma (0..255) of a BGR or grey image, normalised to a reference exposure and 0 dB
+    gain, so that auto-exposure does not hide the dusk: ambient = mean * (ref/exposure) /
+    10^(gain/20). Sub-sampled (every 8th pixel): cheap enough for every frame."""
+    img = np.asarray(image)
+    sub = img[::8, ::8]
+    if sub.ndim == 3:
+        sub = sub[..., 0] * 0.114 + sub[..., 1] * 0.587 + sub[..., 2] * 0.299
+    m = float(np.mean(sub)) if sub.size else 0.0
+    return m * (ref_exposure_us / max(exposure_us, 1e-9)) / (10 ** (gain_db / 20.0))
+
+
+def next_illumination(current: str, ambient: float, night_below: float = 35.0,
+                      day_above: float = 60.0) -> str:
+    """The illumination mode for the next frames, with hysteresis: day -> night when the ambient
+    brightness drops below ``night_below``; night -> day only above ``day_above``. Measure the
+    ambient on a frame taken WITHOUT the strobe (in night mode, the strobe lights the scene and
+    would switch it straight back)."""
+    if night_below >= day_above:
+        raise ValueError("night_below must be lower than day_above (that is the hysteresis)")
+    if current == NIGHT:
+        return DAY if ambient > day_above else NIGHT
+    return NIGHT if ambient < night_below else DAY
+
+
+# ---------------------------------------------------------------------------------------------
+# the line protocol
+def checksum(payload: str) -> str:
+    c = 0
+    for b in payload.encode("ascii", "replace"):
+        c ^= b
+    return f"{c:02X}"
+
+
+def frame_line(payload: str) -> bytes:
+    return f"{payload}*{checksum(payload)}\n".encode("ascii")
+
+
+def parse_line(raw: bytes) -> str:
+    """The payload of one received line (without the newline). ValueError if it is not a
+    well-formed, correctly check-summed line."""
+    try:
+        text = raw.decode("ascii").strip("\r\n")
+    except UnicodeDecodeError:
+        raise ValueError("not ASCII") from None
+    payload, star, cs = text.rpartition("*")
+    if not star or len(cs) != 2:
+        raise ValueError(f"no checksum: {text[:40]!r}")
+    if not payload or not payload.isprintable():
+        raise ValueError(f"not printable: {text[:40]!r}")
+    if checksum(payload) != cs.upper():
+        raise ValueError(f"bad checksum: {text[:40]!r}")
+    return payload
+
+
+def parse_status(payload: str) -> dict:
+    """``STATUS rate=10.00 armed=1 strobe=0 pulses=1234 fault=0`` -> dict. ValueError if wrong."""
+    w = payload.split()
+    if not w or w[0] != "STATUS":
+        raise ValueError(f"not a status line: {payload!r}")
+    kv = dict(x.split("=", 1) for x in w[1:] if "=" in x)
+    try:
+        return {"rate_hz": float(kv["rate"]), "armed": kv["armed"] == "1",
+                "strobe": kv["strobe"] == "1", "pulses": int(kv["pulses"]),
+                "fault": int(kv["fault"])}
+    except (KeyError, ValueError) as exc:
+        raise ValueError(f"bad status line {payload!r}: {exc}") from None
+
+
+# ---------------------------------------------------------------------------------------------
+class StrobeSerialTrigger(StrobeTrigger):
+    """The trigger/strobe controller on a serial port (pyserial)."""
+
+    options_schema = {"port": str, "baudrate": int, "rate_hz": float, "strobe": bool,
+                      "status_period_s": float, "ack_timeout_s": float, "fault_hold_s": float,
+                      "backoff_max_s": float}
+    default_timeout_s = 0.35
+
+    def __init__(self, name, clock, port: str = "/dev/fieldguard-strobe", baudrate: int = 115200,
+                 timeout_s: float = default_timeout_s, rate_hz: float = 10.0,
+                 strobe: bool = False, status_period_s: float = 0.1, ack_timeout_s: float = 0.5,
+                 fault_hold_s: float = 0.3, backoff_max_s: float = 2.0):
+        super().__init__(name, clock, timeout_s)
+        self.port, self.baudrate = port, int(baudrate)
+        self.want_rate_hz = float(rate_hz)
+        self.want_strobe = bool(strobe)
+        self.status_period_s = float(status_period_s)
+        self.ack_timeout_s = float(ack_timeout_s)
+        self.fault_hold_s = float(fault_hold_s)
+        self.backoff = Backoff(0.1, backoff_max_s)
+        self._ser = None
+        self._buf = b""
+        self._cmds: queue.Queue[str] = queue.Queue()
+        self._pending: dict[str, float] = {}      # command word -> deadline (monotonic)
+        self._next_status = 0.0
+        self._bad_until = 0.0
+        self._last_pulses: tuple[int, float] | None = None
+        self._stalled_since: float | None = None
+        self.last_status: dict | None = None
+        self._fault_text: dict[str, str] = {}
+
+    @classmethod
+    def from_config(cls, cfg, clock, shared):
+        o = cfg.options
+        return cls(cfg.name, clock, port=o.get("port", "/dev/fieldguard-strobe"),
+                   baudrate=o.get("baudrate", 115200), timeout_s=cfg.timeout_s,
+                   rate_hz=o.get("rate_hz", 10.0), strobe=o.get("strobe", False),
+                   status_period_s=o.get("status_period_s", 0.1),
+                   ack_timeout_s=o.get("ack_timeout_s", 0.5),
+                   fault_hold_s=o.get("fault_hold_s", 0.3),
+                   backoff_max_s=o.get("backoff_max_s", 2.0))
+
+    # ---- the interface (callable from any thread, never blocks) ----------------------------
+    def set_rate(self, rate_hz: float) -> None:
+        if not 0.1 <= rate_hz <= 60.0:
+            raise ValueError(f"rate_hz must be in 0.1..60, got {rate_hz}")
+        self.want_rate_hz = float(rate_hz)
+        self._cmds.put(f"RATE {rate_hz:.2f}")
+
+    def set_strobe(self, on: bool) -> None:
+        self.want_strobe = bool(on)
+        self._cmds.put("STROBE ON" if on else "STROBE OFF")
+
+    # ---- port -----------------------------------------------------------------------------------
+    def _open(self) -> None:
+        import serial  # noqa: F401  (fail at start-up, not in the thread, if pyserial is missing)
+
+    def _close(self) -> None:
+        s, self._ser = self._ser, None
+        if s is not None:
+            try:
+                s.write(frame_line("DISARM"))
+            except Exception:
+                pass
+            s.close()
+
+    def _drop(self, reason: str) -> None:
+        if self._ser is not None:
+            try:
+                self._ser.close()
+            except Exception:
+                pass
+        self._ser = None
+        self._buf = b""
+        self._pending.clear()
+        self._last_pulses = None
+        self.backoff.failed()
+        self._count("reopens")
+        self._fault(reason)
+
+    def _connect(self) -> None:
+        import serial
+        try:
+            self._ser = serial.Serial(self.port, self.baudrate, timeout=0.05, write_timeout=0.2)
+        except (serial.SerialException, OSError) as exc:
+            self._ser = None
+            raise DeviceOperationError(f"cannot open {self.port}: {exc}") from None
+        self._ser.reset_input_buffer()
+        self._buf = b""
+        # (re)configure from scratch: the controller may have been power-cycled
+        for c in (f"RATE {self.want_rate_hz:.2f}", "STROBE ON" if self.want_strobe else
+                  "STROBE OFF", "ARM"):
+            self._send(c)
+        self._next_status = 0.0
+
+    def _send(self, payload: str) -> None:
+        import serial
+        try:
+            self._ser.write(frame_line(payload))
+        except (serial.SerialException, OSError) as exc:
+            raise DeviceOperationError(f"write to {self.port} failed: {exc}") from None
+        word = payload.split()[0]
+        if word not in ("STATUS?", "PING"):
+            self._pending[word] = time.monotonic() + self.ack_timeout_s
+        self._count("sent")
+
+    def _wire_error(self, reason: str) -> None:
+        self._bad_until = time.monotonic() + self.fault_hold_s
+        self._fault(reason)
+
+    # ---- acquisition ----------------------------------------------------------------------------
+    def _acquire_once(self) -> None:
+        import serial
+        if self._ser is None:
+            if not self.backoff.ready():
+                self._stop_evt.wait(min(0.1, self.backoff.remaining_s()))
+                return
+            try:
+                self._connect()
+            except DeviceError as exc:
+                self._drop(str(exc))
+            return
+        try:
+            while True:
+                try:
+                    c = self._cmds.get_nowait()
+                except queue.Empty:
+                    break
+                self._send(c)
+            now = time.monotonic()
+            if now >= self._next_status:
+                self._send("STATUS?")
+                self._next_status = now + self.status_period_s
+            data = self._ser.read(max(1, self._ser.in_waiting))
+        except DeviceOperationError as exc:
+            self._drop(str(exc))
+            return
+        except (serial.SerialException, OSError) as exc:
+            self._drop(f"{self.port}: {exc}")
+            return
+        if data:
+            self._buf += data
+            while b"\n" in self._buf:
+                line, self._buf = self._buf.split(b"\n", 1)
+                self._handle(line)
+            if len(self._buf) > 512:                     # no newline in sight: line noise
+                self._count("bad_lines")
+                self._buf = b""
+                self._wire_error("bad data on the serial line: overlong line")
+        now = time.monotonic()
+        for word, deadline in list(self._pending.items()):
+            if now > deadline:
+                del self._pending[word]
+                self._count("unanswered")
+                self._fault(f"controller did not answer {word}")
+
+    def _handle(self, raw: bytes) -> None:
+        try:
+            payload = parse_line(raw)
+        except ValueError as exc:
+            self._count("bad_lines")
+            self._wire_error(f"bad data on the serial line: {exc}")
+            return
+        w = payload.split()
+        if w[0] == "OK" and len(w) > 1:
+            self._pending.pop(w[1], None)
+        elif w[0] == "ERR":
+            self._count("errors")
+            self._fault(f"controller error: {payload[4:]}")
+        elif w[0] == "FAULT":
+            self._count("controller_faults")
+            code, _, text = payload[6:].partition(" ")
+            self._fault_text[code] = text
+            self._bad_until = time.monotonic() + self.fault_hold_s
+            self._fault(f"controller fault {code}: {text}")
+        elif w[0] == "STATUS":
+            try:
+                st = parse_status(payload)
+            except ValueError as exc:
+                self._count("bad_lines")
+                self._wire_error(str(exc))
+                return
+            self._on_status(st)
+        else:
+            self._count("other_lines")
+
+    def _on_status(self, st: dict) -> None:
+        now = time.monotonic()
+        self.last_status = st
+        if st["fault"]:
+            text = self._fault_text.get(str(st["fault"]), "")
+            self._fault(f"controller fault {st['fault']}: {text}".rstrip(": "))
+            return
+        if not st["armed"]:
+            self._fault("controller is not armed (cameras are not being triggered)")
+            self._cmds.put("ARM")
+            return
+        if abs(st["rate_hz"] - self.want_rate_hz) > 0.01:
+            self._fault(f"controller runs at {st['rate_hz']:g} Hz, wanted "
+                        f"{self.want_rate_hz:g} Hz")
+            self._cmds.put(f"RATE {self.want_rate_hz:.2f}")
+            return
+        if st["strobe"] != self.want_strobe:
+            self._cmds.put("STROBE ON" if self.want_strobe else "STROBE OFF")
+        # is it firing? the pulse counter must climb at the rate
+        if self._last_pulses is not None and st["pulses"] == self._last_pulses[0]:
+            if now - self._last_pulses[1] > 2.5 / self.want_rate_hz:
+                self._count("stalls")
+                self._fault(f"trigger stopped firing ({st['pulses']} pulses, none for "
+                            f"{now - self._last_pulses[1]:.2f} s)")
+                return
+        else:
+            self._last_pulses = (st["pulses"], now)
+        if now < self._bad_until or self._pending:
+            return          # keep the fault visible / wait for the acks
+        self.backoff.reset()
+        self._publish({"stamp_ns": self.clock.now_ns(), "rate_hz": st["rate_hz"],
+                       "armed": st["armed"], "strobe": st["strobe"], "pulses": st["pulses"],
+                       "fault": st["fault"]})
+
+    def _stamp_of(self, sample) -> int:
+        return sample["stamp_ns"]
+
+    def selftest(self) -> tuple[bool, str]:
+        h = self.health()
+        st = self.last_status
+        if h.ok and st:
+            return True, (f"{self.port}: firing at {st['rate_hz']:g} Hz, strobe "
+                          f"{'on' if st['strobe'] else 'off'}, {st['pulses']} pulses")
+        return False, f"{self.port}: {h.reason or h.state.value}"
