@@ -1,0 +1,234 @@
+"""The RGB-D pipeline (``rgbd``): the greenhouse paper (Nissimov, Goldberger, Alchanatis 2015).
+
+Per frame, as the paper's Fig. 1:
+1. slope of vertically neighbouring depth pixels (eq. 4) with the camera's real intrinsics and
+   mount pitch; depth outside [min_range_m, max_range_m] ignored; slope > 40 deg = suspected
+   obstacle pixel; 3x3 dilation (rgbd_slope);
+2. suspected pixels get a colour class: nearest Mahalanobis distance (eq. 5) in the configured
+   colour space, under a threshold, else undefined (rgbd_colour);
+3. texture: LBP codes (eq. 6), 256-bin histograms over 20x20 windows (eq. 7), chi-square (eq. 8)
+   under 0.5, else undefined -- by default only on frames where colour already found an obstacle
+   (the paper), ``texture = "always"`` on every frame, ``"off"`` never (rgbd_texture);
+4. a connected group of >= 30 suspected pixels, above and adjacent to surface pixels, of no
+   traversable class, is an obstacle; colour OR texture (rgbd_decision).
+Obstacle pixels with a valid depth go to 3-D (optical frame), through the mount into the vehicle
+frame, and out as (x, y) points for the grid.
+
+Our additions, each off by default so the default is the paper: ``holes`` (depth holes on shiny
+surfaces standing on the ground and of no traversable colour are obstacles, placed where their
+bottom edge meets the ground plane) and ``use_vehicle_pitch``.
+
+The class model is a file (``model``), read once at construction by appliance.rgbd_model
+(perception itself does no I/O); tests and tools may pass a model object instead.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from appliance.config import _f
+
+from .base import Detections, Pipeline, SensorInputs
+from .rgbd_classes import RgbdClassModel
+from .rgbd_colour import COLOUR_SPACES, ColourClassifier, colour_features
+from .rgbd_decision import not_traversable, obstacle_groups
+from .rgbd_slope import height_map, slope_map, suspected_map
+from .rgbd_texture import classify_histograms, lbp_codes, to_grey, window_histograms, window_index
+
+NOT_CLASSIFIED = -2          # class map value of pixels that were not suspected
+
+
+@dataclass(frozen=True)
+class RgbdPipelineConfig:
+    model: str = _f("", doc="class model file from `fieldguard train-classes`; "
+                            "empty = the shipped greenhouse model (deploy/models/)")
+    colour_space: str = _f("rgb", choices=COLOUR_SPACES)
+    min_range_m: float = _f(0.5, lo=0.0, hi=20.0, doc="depth below this is ignored")
+    max_range_m: float = _f(5.0, lo=0.1, hi=50.0, doc="depth above this is ignored")
+    slope_threshold_deg: float = _f(40.0, lo=1.0, hi=89.0)
+    slope_step_px: int = _f(4, lo=1, hi=16, doc="rows between the two pixels of eq. 4 (paper: 1)")
+    depth_median_px: int = _f(3, choices=(0, 3, 5), doc="median filter of the depth before "
+                                                          "the slope (paper: 0 = none)")
+    dilate_px: int = _f(3, lo=1, hi=15, doc="square dilation of the suspected map (3 = paper)")
+    colour_threshold: float = _f(3.5, lo=0.1, hi=100.0, doc="Mahalanobis distance for a class")
+    texture: str = _f("after-colour", choices=("after-colour", "always", "off"),
+                      doc="when the LBP texture classifier runs")
+    texture_window_px: int = _f(20, lo=3, hi=100)
+    texture_threshold: float = _f(0.5, lo=0.0, hi=2.0, doc="chi-square distance for a class")
+    min_pixels: int = _f(30, lo=1, hi=100000, doc="smallest obstacle group")
+    contact_px: int = _f(1, lo=1, hi=50, doc="surface within this many rows below a group")
+    ground_max_height_m: float = _f(0.0, lo=0.0, hi=5.0,
+                                    doc="only surface lower than this counts as the ground a "
+                                        "group must stand on (0 = any surface, the paper)")
+    traversable: tuple = _f(("bush", "pepper"), doc="class names the vehicle may drive through")
+    holes: bool = _f(False, doc="depth holes standing on the ground are obstacles (not in paper)")
+    hole_min_pixels: int = _f(150, lo=1, hi=100000)
+    use_vehicle_pitch: bool = _f(False, doc="add the vehicle's pitch to the mount pitch")
+
+
+@dataclass
+class RgbdResult:
+    """Everything one frame produced (for tools and tests; process() keeps only the points)."""
+
+    slope_deg: np.ndarray
+    suspected: np.ndarray
+    surface: np.ndarray
+    colour_class: np.ndarray      # int16, NOT_CLASSIFIED outside suspected, -1 undefined
+    texture_class: np.ndarray | None
+    colour_obstacles: np.ndarray  # bool mask
+    texture_obstacles: np.ndarray | None
+    hole_obstacles: np.ndarray | None
+    obstacles: np.ndarray         # bool mask (union)
+    groups_colour: int
+    groups_texture: int
+    groups_holes: int
+    points_xy: np.ndarray
+
+
+class RgbdPipeline(Pipeline):
+    name = "rgbd"
+    requires = ("rgbd",)
+    config_class = RgbdPipelineConfig
+
+    def __init__(self, options: RgbdPipelineConfig | None = None,
+                 model: RgbdClassModel | None = None):
+        super().__init__(options)
+        o: RgbdPipelineConfig = self.options
+        if o.max_range_m <= o.min_range_m:
+            raise ValueError("perception.rgbd: max_range_m must exceed min_range_m")
+        if model is None:
+            from appliance import rgbd_model       # the file is read outside perception
+            model = rgbd_model.load(o.model or None)
+        self.model = model
+        self.colour = ColourClassifier(model.mixtures(o.colour_space), o.colour_threshold)
+        self.traversable_idx = model.index(o.traversable)
+
+    # ------------------------------------------------------------------------------------------
+    def process(self, inputs: SensorInputs) -> Detections:
+        r = self.analyse(inputs)
+        return Detections(points_xy=r.points_xy, debug={
+            "suspected_px": int(r.suspected.sum()), "obstacle_px": int(r.obstacles.sum()),
+            "groups_colour": r.groups_colour, "groups_texture": r.groups_texture,
+            "groups_holes": r.groups_holes, "texture_ran": r.texture_class is not None})
+
+    def analyse(self, inputs: SensorInputs) -> RgbdResult:
+        o: RgbdPipelineConfig = self.options
+        fr = inputs.rgbd
+        color, depth = fr.color, fr.depth_m
+        if color.shape[:2] != depth.shape:
+            raise ValueError(f"rgbd colour {color.shape[:2]} and depth {depth.shape} differ")
+        cam, mount = fr.calib.camera, fr.calib.mount
+        pitch = math.radians(mount.pitch_deg)
+        if o.use_vehicle_pitch and inputs.vehicle is not None:
+            pitch += inputs.vehicle.pitch_rad
+        lo = max(o.min_range_m, fr.calib.min_range_m) if fr.calib.min_range_m else o.min_range_m
+        hi = min(o.max_range_m, fr.calib.max_range_m) if fr.calib.max_range_m else o.max_range_m
+        if o.depth_median_px:
+            # Kinect-class depth is quantised and noisy; a 3x3 median keeps edges (holes stay 0)
+            zf = np.asarray(depth, np.float32)
+            depth_s = np.where(zf > 0, cv2.medianBlur(zf, o.depth_median_px), np.float32(0))
+        else:
+            depth_s = depth
+        slope = slope_map(depth_s, cam.fy, cam.cy, pitch, lo, hi, o.slope_step_px)
+        sus, surface = suspected_map(slope, o.slope_threshold_deg, o.dilate_px)
+        if o.ground_max_height_m > 0:
+            # our addition: bush tops are level too, but an obstacle stands on the ground
+            surface &= height_map(depth_s, cam.fy, cam.cy, pitch, mount.z_m) < \
+                np.float32(o.ground_max_height_m)
+
+        # 2. colour classes of the suspected pixels
+        cmap = np.full(sus.shape, NOT_CLASSIFIED, np.int16)
+        cmap[sus] = self.colour.classify(colour_features(color[sus], o.colour_space))
+        cand = sus & not_traversable(cmap, self.traversable_idx)
+        col_obs, n_col = obstacle_groups(cand, surface, o.min_pixels, o.contact_px)
+
+        # 3. texture
+        tmap = tex_obs = None
+        n_tex = 0
+        if o.texture == "always" or (o.texture == "after-colour" and n_col > 0):
+            tmap = self._texture_map(color, sus)
+            cand_t = sus & not_traversable(tmap, self.traversable_idx)
+            tex_obs, n_tex = obstacle_groups(cand_t, surface, o.min_pixels, o.contact_px)
+
+        obs = col_obs | tex_obs if tex_obs is not None else col_obs.copy()
+        pts = self._points(depth, obs, cam, mount, lo, hi)
+
+        # our addition: shiny surfaces return no depth at all
+        hole_obs = None
+        n_holes = 0
+        if o.holes:
+            hole_obs, n_holes, hpts = self._holes(color, depth, surface, cam, mount, pitch, lo, hi)
+            if len(hpts):
+                pts = np.concatenate([pts, hpts])
+            obs = obs | hole_obs
+        return RgbdResult(slope, sus, surface, cmap, tmap, col_obs, tex_obs, hole_obs, obs,
+                          n_col, n_tex, n_holes, pts)
+
+    # ------------------------------------------------------------------------------------------
+    def _texture_map(self, color: np.ndarray, sus: np.ndarray) -> np.ndarray:
+        o: RgbdPipelineConfig = self.options
+        tmap = np.full(sus.shape, NOT_CLASSIFIED, np.int16)
+        if not sus.any():
+            return tmap
+        widx, _, _ = window_index(sus.shape, o.texture_window_px)
+        wanted = np.unique(widx[sus])
+        codes = lbp_codes(to_grey(color))
+        hists = window_histograms(codes, o.texture_window_px, wanted)
+        per_window = np.full(hists.shape[0], NOT_CLASSIFIED, np.int16)
+        per_window[wanted] = classify_histograms(hists[wanted], self.model.lbp,
+                                                 o.texture_threshold)
+        tmap[sus] = per_window[widx[sus]]
+        return tmap
+
+    @staticmethod
+    def _to_vehicle(u, v, z, cam, mount) -> np.ndarray:
+        x = (u - np.float32(cam.cx)) / np.float32(cam.fx) * z
+        y = (v - np.float32(cam.cy)) / np.float32(cam.fy) * z
+        p = np.stack([x, y, z], axis=1).astype(np.float64)
+        return (p @ mount.camera_to_vehicle().T + mount.position)[:, :2].astype(np.float32)
+
+    def _points(self, depth, mask, cam, mount, lo, hi) -> np.ndarray:
+        v, u = np.nonzero(mask)
+        z = depth[v, u]
+        ok = (z >= lo) & (z <= hi)
+        if not ok.any():
+            return np.zeros((0, 2), np.float32)
+        return self._to_vehicle(u[ok].astype(np.float32), v[ok].astype(np.float32), z[ok],
+                                cam, mount)
+
+    def _holes(self, color, depth, surface, cam, mount, pitch, lo, hi):
+        """Depth holes standing on the ground: a connected region of no depth of at least
+        ``hole_min_pixels``, with surface right below it, whose colour is of no traversable
+        class. Its range comes from where its bottom pixels' rays meet the ground plane of the
+        mount (flat ground assumed), clipped to the valid range."""
+        o: RgbdPipelineConfig = self.options
+        hole = depth <= 0
+        cmap = np.full(hole.shape, NOT_CLASSIFIED, np.int16)
+        cmap[hole] = self.colour.classify(colour_features(color[hole], o.colour_space))
+        cand = hole & not_traversable(cmap, self.traversable_idx)
+        # holes are thin at depth edges: open the mask so only solid regions remain
+        cand = cv2.morphologyEx(cand.view(np.uint8), cv2.MORPH_OPEN,
+                                np.ones((5, 5), np.uint8)) > 0
+        mask, n = obstacle_groups(cand, surface, o.hole_min_pixels, max(o.contact_px, 3))
+        if n == 0:
+            return mask, 0, np.zeros((0, 2), np.float32)
+        # bottom pixel of each column of the mask: its ray meets the ground at the contact
+        h = mask.shape[0]
+        rows = np.where(mask, np.arange(h)[:, None], -1).max(0)
+        u = np.nonzero(rows >= 0)[0]
+        v = rows[u]
+        ang = np.arctan((v - cam.cy) / cam.fy) + pitch           # below the horizontal
+        okg = ang > math.radians(0.5)
+        u, v, ang = u[okg], v[okg], ang[okg]
+        rng = mount.z_m / np.sin(ang)                           # range in the vertical plane
+        z = (rng * np.cos(np.arctan((v - cam.cy) / cam.fy))).astype(np.float32)
+        ok = (z >= lo) & (z <= hi)
+        if not ok.any():
+            return mask, n, np.zeros((0, 2), np.float32)
+        # a column of points up the face is not needed: the contact line is the obstacle's front
+        pts = self._to_vehicle(u[ok].astype(np.float32), v[ok].astype(np.float32), z[ok], cam,
+                               mount)
+        return mask, n, pts

@@ -1,0 +1,319 @@
+#!/usr/bin/env python3
+"""Experiments of the RGB-D pipeline on the simulated greenhouse (docs/rgbd.md has the results).
+
+    python tools/experiments_rgbd.py annotate RUN --out deploy/annotations/greenhouse.json
+        emulate the paper's manual annotation (section 4.1) on 12 frames of a training run:
+        re-render those frames with the simulator's material map and mark rectangles that lie
+        wholly inside one class (bush leaves, red pepper, brown ground, white cover); never on
+        an obstacle. The rectangles are written in the documented annotation format and the
+        model is trained from them by `fieldguard train-classes` like any hand-made file.
+    python tools/experiments_rgbd.py tables RUN [RUN...] [--step N] [--model M] [--json F]
+        the protocol of the paper's Tables 2-4 on test runs (other seeds): per colour space,
+        colour alone and colour + texture, single-frame decisions (grid occupied_at = 1,
+        decay = 0), scored with appliance.evaluation.score_frame: obstacles detected at least
+        once out of those present, frame-level TP (detected obstacle-frames), FN (missed ones),
+        FP (connected groups of false-positive cells), recall, precision = TP / (TP + FP).
+    python tools/experiments_rgbd.py variants RUN [RUN...] [--step N]
+        failure modes and future work against the baseline (RGB, colour + texture): texture
+        always, depth holes as obstacles, colour/depth misalignment (depth shifted by k px),
+        multi-frame voting (the grid's two-hit rule), mixture-of-Gaussians colour models.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from appliance import rgbd_model  # noqa: E402
+from appliance.config import GridConfig, default_config  # noqa: E402
+from appliance.evaluation import score_frame, zone_for_run  # noqa: E402
+from appliance.fusion import GridFusion  # noqa: E402
+from appliance.perception import SensorInputs  # noqa: E402
+from appliance.perception.rgbd import RgbdPipeline, RgbdPipelineConfig  # noqa: E402
+from appliance.perception.rgbd_colour import COLOUR_SPACES  # noqa: E402
+from drivers.runfolder import RunReader  # noqa: E402
+
+CLASSES = ("bush", "pepper", "ground", "cover")
+
+
+# ---------------------------------------------------------------------------------------------
+# annotation (emulating a person marking blocks on 12 frames)
+# ---------------------------------------------------------------------------------------------
+def _pure_rects(mask: np.ndarray, size: int, n: int, rng: np.random.Generator) -> list[list[int]]:
+    """Up to n non-overlapping size x size rectangles wholly inside mask."""
+    integ = cv2.integral(mask.astype(np.uint8))
+    s = size
+    full = (integ[s:, s:] - integ[:-s, s:] - integ[s:, :-s] + integ[:-s, :-s]) == s * s
+    ys, xs = np.nonzero(full)
+    out: list[list[int]] = []
+    taken = np.zeros(mask.shape, bool)
+    for k in rng.permutation(len(ys)):
+        y, x = int(ys[k]), int(xs[k])
+        if taken[y:y + s, x:x + s].any():
+            continue
+        out.append([x, y, s, s])
+        taken[max(0, y - s):y + 2 * s, max(0, x - s):x + 2 * s] = True
+        if len(out) >= n:
+            break
+    return out
+
+
+def cmd_annotate(a) -> int:
+    from drivers.sim.field import SimField
+    from drivers.sim.world import MAT_BUSH, MAT_GROUND, MAT_SKY
+    from hal.types import GateState
+    info = RunReader(a.run).info
+    sim = info.extra.get("run", {}).get("sim", {})
+    seed = int(sim.get("seed", a.seed))
+    n_frames = len(RunReader(a.run))
+    picks = [int(round(i)) for i in np.linspace(5, n_frames - 5, a.frames)]
+    field = SimField("greenhouse", seed=seed, sensors=("rgbd",))
+    rng = np.random.default_rng(a.seed)
+    frames = {}
+    for i in range(max(picks) + 1):
+        if i in picks:
+            views: list = []
+            fr = field.render_rgbd(i * 100_000_000, i, view_out=views)
+            stored = cv2.imread(str(Path(a.run) / "rgbd" / "color" / f"{i:06d}.png"))
+            if stored is None or not np.array_equal(stored, fr.color):
+                raise SystemExit(f"frame {i}: re-rendered colour differs from the run's; is "
+                                 f"{a.run} an open-loop greenhouse run of seed {seed}?")
+            mat = views[0].mat
+            img = fr.color.astype(np.int32)
+            red = (img[..., 2] > 1.5 * img[..., 1]) & (img[..., 2] > 1.3 * img[..., 0])
+            er = lambda m, k=3: cv2.erode(m.astype(np.uint8), np.ones((k, k), np.uint8)) > 0  # noqa
+            regions = []
+            for cls, mask, size, n in (
+                    ("bush", er(mat == MAT_BUSH) & ~cv2.dilate(red.astype(np.uint8),
+                                                               np.ones((9, 9), np.uint8)).astype(bool),
+                     14, 6),
+                    ("pepper", er(red & (mat == MAT_BUSH)), 4, 5),
+                    ("ground", er(mat == MAT_GROUND), 14, 4),
+                    ("cover", er(mat == MAT_SKY), 14, 3)):
+                regions += [{"class": cls, "rect": r} for r in _pure_rects(mask, size, n, rng)]
+            frames[f"{Path(a.run).name}/rgbd/color/{i:06d}.png"] = regions
+        field.step(0.1, GateState.CLEAR)
+    doc = {"format": rgbd_model.ANNOTATION_FORMAT, "version": 1, "classes": list(CLASSES),
+           "source": f"emulated manual annotation of {len(picks)} frames of {info.name} "
+                     f"(tools/experiments_rgbd.py annotate)",
+           "frames": frames}
+    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(a.out).write_text(json.dumps(doc, indent=1) + "\n")
+    counts = {c: sum(r["class"] == c for rs in frames.values() for r in rs) for c in CLASSES}
+    print(f"wrote {a.out}: {len(frames)} frames, rectangles {counts}")
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# scoring runs
+# ---------------------------------------------------------------------------------------------
+def _fp_groups(cells: np.ndarray, truth: list[dict], zone, cell_m: float) -> int:
+    """Number of 8-connected groups of false-positive cells (the paper's 'non-obstacles that
+    were detected as obstacles')."""
+    from appliance.evaluation import MATCH_M, footprint_distance
+    if len(cells) == 0:
+        return 0
+    cells = np.asarray(cells, np.float64)
+    inz = zone.contains(cells)
+    near = np.zeros(len(cells), bool)
+    for ob in truth:
+        near |= footprint_distance(cells, ob) <= MATCH_M + 1e-9
+    fp = cells[inz & ~near]
+    if len(fp) == 0:
+        return 0
+    ij = np.round(fp / cell_m).astype(np.int64)
+    ij -= ij.min(0)
+    img = np.zeros(tuple(ij.max(0) + 1), np.uint8)
+    img[ij[:, 0], ij[:, 1]] = 1
+    n, _ = cv2.connectedComponents(img, connectivity=8)
+    return n - 1
+
+
+@dataclasses.dataclass
+class Tally:
+    frames: int = 0
+    tp: int = 0
+    fn: int = 0
+    fp: int = 0
+    fp_frames: int = 0
+    present: set = dataclasses.field(default_factory=set)
+    detected: set = dataclasses.field(default_factory=set)
+    ms: list = dataclasses.field(default_factory=list)
+
+    def row(self) -> dict:
+        rec = self.tp / (self.tp + self.fn) if self.tp + self.fn else None
+        prec = self.tp / (self.tp + self.fp) if self.tp + self.fp else None
+        ms = np.asarray(self.ms) if self.ms else np.zeros(1)
+        return {"frames": self.frames, "obstacles": len(self.present),
+                "obstacles_detected": len(self.detected), "tp": self.tp, "fp": self.fp,
+                "fn": self.fn, "fp_frames": self.fp_frames,
+                "recall": rec, "precision": prec,
+                "ms_mean": round(float(ms.mean()), 2), "ms_p99": round(float(np.percentile(ms, 99)), 2)}
+
+
+def _shift(img: np.ndarray, dx: int, dy: int) -> np.ndarray:
+    out = np.zeros_like(img)
+    h, w = img.shape[:2]
+    ys, yd = (slice(0, h - dy), slice(dy, h)) if dy >= 0 else (slice(-dy, h), slice(0, h + dy))
+    xs, xd = (slice(0, w - dx), slice(dx, w)) if dx >= 0 else (slice(-dx, w), slice(0, w + dx))
+    out[yd, xd] = img[ys, xs]
+    return out
+
+
+def run_variants(runs: list[str], variants: dict[str, dict], step: int, model,
+                 progress: bool = True) -> dict[str, dict]:
+    """Score every variant (name -> {"options": RgbdPipelineConfig kwargs, "model": m,
+    "grid": GridConfig kwargs, "shift_px": k}) on every step-th frame of the runs. Fusion is
+    fed every frame's points only for the grid variants that need history (occupied_at > 1)."""
+    pipes = {}
+    for name, v in variants.items():
+        opts = RgbdPipelineConfig(**v.get("options", {}))
+        pipes[name] = RgbdPipeline(opts, model=v.get("model", model))
+    tallies = {name: Tally() for name in variants}
+    for run in runs:
+        reader = RunReader(run)
+        zone = zone_for_run(reader.info)
+        fusions = {n: GridFusion(GridConfig(**v.get("grid", {"occupied_at": 1.0, "decay": 0.0})))
+                   for n, v in variants.items()}
+        n = len(reader)
+        t_run = time.time()
+        for i in range(n):
+            voting = [nm for nm, v in variants.items() if v.get("grid", {}).get(
+                "occupied_at", 1.0) > 1.0]
+            if i % step and not voting:
+                continue
+            truth = reader.truth(i) if i % step == 0 else None
+            fr = reader.rgbd(i)
+            vehicle = reader.vehicle(i)
+            stamp = reader.frames[i].stamp_ns
+            for name, v in variants.items():
+                if i % step and name not in voting:
+                    continue
+                k = v.get("shift_px", 0)
+                frame = fr if not k else dataclasses.replace(fr, depth_m=_shift(fr.depth_m, k, 0))
+                t0 = time.perf_counter()
+                det = pipes[name].process(SensorInputs(stamp_ns=stamp, rgbd=frame,
+                                                       vehicle=vehicle))
+                ms = (time.perf_counter() - t0) * 1e3
+                cells = fusions[name].update(det.points_xy, vehicle, stamp)
+                if truth is None:
+                    continue
+                t = tallies[name]
+                s = score_frame(cells, truth, zone)
+                t.frames += 1
+                t.ms.append(ms)
+                for ob in s.scored_obstacles:
+                    key = (reader.info.name, ob.id)
+                    t.present.add(key)
+                    if ob.detected:
+                        t.tp += 1
+                        t.detected.add(key)
+                    else:
+                        t.fn += 1
+                g = _fp_groups(cells, truth, zone, 0.1)
+                t.fp += g
+                t.fp_frames += int(g > 0)
+        if progress:
+            print(f"  {run}: {n} frames, {time.time() - t_run:.0f} s", file=sys.stderr)
+    return {name: t.row() for name, t in tallies.items()}
+
+
+def _pct(v):
+    return "-" if v is None else f"{100 * v:.1f}"
+
+
+def print_table(rows: dict[str, dict], title: str) -> None:
+    print(f"\n{title}\n")
+    print("| variant | obstacles detected | TP | FP | FN | recall % | precision % | FP frames | "
+          "ms mean | ms p99 |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for name, r in rows.items():
+        print(f"| {name} | {r['obstacles_detected']}/{r['obstacles']} | {r['tp']} | {r['fp']} | "
+              f"{r['fn']} | {_pct(r['recall'])} | {_pct(r['precision'])} | "
+              f"{r['fp_frames']}/{r['frames']} | {r['ms_mean']} | {r['ms_p99']} |")
+
+
+def _model(a):
+    return rgbd_model.load(a.model)
+
+
+def cmd_tables(a) -> int:
+    model = _model(a)
+    variants = {}
+    for space in COLOUR_SPACES:
+        variants[f"{space} colour"] = {"options": {"colour_space": space, "texture": "off"}}
+        variants[f"{space} colour+texture"] = {"options": {"colour_space": space,
+                                                            "texture": "after-colour"}}
+    rows = run_variants(a.runs, variants, a.step, model)
+    print_table(rows, f"Tables 2-4 protocol: {', '.join(a.runs)}, every {a.step} frame(s), "
+                      f"single-frame decisions")
+    if a.json:
+        Path(a.json).write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+def cmd_variants(a) -> int:
+    model = _model(a)
+    base = {"colour_space": "rgb", "texture": "after-colour"}
+    variants = {
+        "baseline (paper: rgb, colour+texture after colour)": {"options": base},
+        "texture always": {"options": {**base, "texture": "always"}},
+        "depth holes as obstacles": {"options": {**base, "holes": True}},
+        "misaligned depth +4 px": {"options": base, "shift_px": 4},
+        "misaligned depth +8 px": {"options": base, "shift_px": 8},
+        "multi-frame voting (grid two-hit)": {"options": base,
+                                              "grid": {"occupied_at": 1.4, "decay": 0.5}},
+    }
+    if a.mog_model:
+        variants["mixture of Gaussians colour"] = {"options": base,
+                                                   "model": rgbd_model.load(a.mog_model)}
+    for extra in a.set or []:
+        name, _, kv = extra.partition(":")
+        opts = dict(base)
+        for item in kv.split(","):
+            k, _, v = item.partition("=")
+            opts[k] = json.loads(v) if v[:1] in "0123456789-[tf" else v
+        variants[name] = {"options": opts}
+    rows = run_variants(a.runs, variants, a.step, model)
+    print_table(rows, f"Failure modes and future work: {', '.join(a.runs)}, every {a.step} "
+                      f"frame(s)")
+    if a.json:
+        Path(a.json).write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    p = sub.add_parser("annotate")
+    p.add_argument("run")
+    p.add_argument("--out", required=True)
+    p.add_argument("--frames", type=int, default=12)
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=cmd_annotate)
+    for name, fn in (("tables", cmd_tables), ("variants", cmd_variants)):
+        p = sub.add_parser(name)
+        p.add_argument("runs", nargs="+")
+        p.add_argument("--step", type=int, default=3, help="score every N-th frame")
+        p.add_argument("--model", default=None, help="class model (default: the shipped one)")
+        p.add_argument("--json", default=None)
+        if name == "variants":
+            p.add_argument("--mog-model", default=None, help="a mixture model to compare")
+            p.add_argument("--set", action="append",
+                           help="extra variant NAME:key=value,key=value on the baseline")
+        p.set_defaults(func=fn)
+    a = ap.parse_args(argv)
+    return a.func(a)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
