@@ -52,10 +52,13 @@ def lab_planes(bgr: np.ndarray) -> np.ndarray:
     return lab.astype(np.float32) * np.float32(1.0 / 255.0)
 
 
-def _moments_to_descriptors(mean: np.ndarray, sq: np.ndarray) -> np.ndarray:
+def _moments_to_descriptors(mean: np.ndarray, sq: np.ndarray, centre=None) -> np.ndarray:
+    """From per-cell E[x - c] and E[(x - c)^2] (c = ``centre``, default 0)."""
     rows, cols = mean.shape[:2]
     # std of a [0, 1] variable is at most 0.5: doubled so it spans the same range (paper III-B)
     sd = 2.0 * np.sqrt(np.maximum(sq - mean * mean, 0.0))
+    if centre is not None:
+        mean = mean + centre
     v, u = np.mgrid[0:rows, 0:cols].astype(np.float32)
     uu = (u + 0.5) / cols
     vv = (v + 0.5) / rows
@@ -69,9 +72,12 @@ def cell_descriptors(bgr: np.ndarray, cell_px: int = 32) -> np.ndarray:
     f = lab[:rows * cell_px, :cols * cell_px]
     if f.shape[0] < cell_px or f.shape[1] < cell_px:       # smaller than one cell: one cell
         f = lab
+    # moments about the image's mean colour: less float32 cancellation in E[x^2] - E[x]^2
+    c = np.asarray(cv2.mean(f)[:3], np.float32)
+    f = f - c
     mean = cv2.resize(f, (cols, rows), interpolation=cv2.INTER_AREA)
     sq = cv2.resize(f * f, (cols, rows), interpolation=cv2.INTER_AREA)
-    return _moments_to_descriptors(mean, sq)
+    return _moments_to_descriptors(mean, sq, c)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -100,6 +106,7 @@ class VisualOdometry:
         self.K[:2] *= self.f
         self.max_features = max_features
         self.prev = None
+        self.method = ""
 
     def relative(self, bgr: np.ndarray) -> np.ndarray | None:
         """Rotation of the camera since the previous call, as the body-free optical-frame matrix
@@ -118,13 +125,26 @@ class VisualOdometry:
         if ok.sum() < 12:
             return None
         a, b = p0[ok].reshape(-1, 2), p1[ok].reshape(-1, 2)
-        E, inl = cv2.findEssentialMat(a, b, self.K, method=cv2.RANSAC, prob=0.999, threshold=1.0)
-        if E is None or E.shape != (3, 3):
-            return None
-        n, R, _, _ = cv2.recoverPose(E, a, b, self.K, mask=inl)
-        if n < 8:
-            return None
-        # recoverPose: x_now = R x_prev + t  ->  the camera turned by R^T
+        # little parallax (a pure rotation, or far scenery): the essential matrix is degenerate,
+        # the rotation homography K R K^-1 explains the flow; else rotation from E
+        Hm, hin = cv2.findHomography(a, b, cv2.RANSAC, 1.0)
+        if Hm is not None and hin is not None and hin.mean() > 0.9:
+            R = np.linalg.inv(self.K) @ Hm @ self.K
+            U, _, Vt = np.linalg.svd(R)
+            R = U @ Vt
+            if np.linalg.det(R) < 0:
+                return None
+            self.method = "homography"
+        else:
+            E, inl = cv2.findEssentialMat(a, b, self.K, method=cv2.RANSAC, prob=0.999,
+                                          threshold=1.0)
+            if E is None or E.shape != (3, 3):
+                return None
+            n, R, _, _ = cv2.recoverPose(E, a, b, self.K, mask=inl)
+            if n < 8:
+                return None
+            self.method = "essential"
+        # x_now = R x_prev (+ t): the camera turned by R^T
         return R.T
 
 
@@ -213,6 +233,8 @@ def stabilised_descriptors(bgr: np.ndarray, cell_px: int, A: np.ndarray | None):
     if A is None or np.allclose(A, [[1, 0, 0], [0, 1, 0]], atol=1e-6):
         return cell_descriptors(bgr, cell_px), np.ones((rows, cols), bool)
     f = lab[:rows * cell_px, :cols * cell_px]
+    c = np.asarray(cv2.mean(f)[:3], np.float32)
+    f = f - c
     sw, sh = cols * cell_px // pool, rows * cell_px // pool
     m1 = cv2.resize(f, (sw, sh), interpolation=cv2.INTER_AREA)
     m2 = cv2.resize(f * f, (sw, sh), interpolation=cv2.INTER_AREA)
@@ -228,7 +250,7 @@ def stabilised_descriptors(bgr: np.ndarray, cell_px: int, A: np.ndarray | None):
     mean = cv2.resize(w1, (cols, rows), interpolation=cv2.INTER_AREA)
     sq = cv2.resize(w2, (cols, rows), interpolation=cv2.INTER_AREA)
     valid = cv2.resize(cover, (cols, rows), interpolation=cv2.INTER_AREA) >= 0.75
-    return _moments_to_descriptors(mean, sq), valid
+    return _moments_to_descriptors(mean, sq, c), valid
 
 
 def mask_to_camera(mask_cells: np.ndarray, A: np.ndarray | None, size_wh: tuple[int, int],
