@@ -190,7 +190,7 @@ def test_obstacle_cells_margin():
 
 
 def _cfg(**kw):
-    base = dict(sigma=0.05, rho=1.0, forget=0.3, update_every_frames=1, weight_floor=1e-3,
+    base = dict(cell_px=32, sigma=0.05, rho=1.0, forget=0.3, update_every_frames=1, weight_floor=1e-3,
                 stabilise="off", island_min_neighbours=1, dilate_cells=0)
     base.update(kw)
     return StereoNoveltyConfig(**base)

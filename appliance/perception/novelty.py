@@ -499,6 +499,7 @@ class NoveltyResult:
     descriptors: np.ndarray    # (rows, cols, 8) scaled
     affine: np.ndarray | None  # camera -> stabilised
     model_empty: bool
+    cell_px: int = 32
 
 
 class NoveltyDetector:
@@ -520,13 +521,18 @@ class NoveltyDetector:
         self._log_rho = -math.log10(o.rho)
 
     # ---- per frame -------------------------------------------------------------------------
+    def cell_px_for(self, width: int) -> int:
+        """The configured cell size, or width / 40 (the paper's grid) when it is 0."""
+        return int(self.o.cell_px) or max(4, int(round(width / 40.0)))
+
     def detect(self, bgr: np.ndarray, K: np.ndarray | None = None, M: np.ndarray | None = None,
                vehicle=None) -> NoveltyResult:
+        cell = self.cell_px_for(bgr.shape[1])
         A = None
         if K is not None and M is not None and self.o.stabilise != "off":
             acc = self.stabiliser.update(bgr, K, M, vehicle)
             A = Stabiliser.affine(acc, K, M)
-        desc, valid = stabilised_descriptors(bgr, self.o.cell_px, A)
+        desc, valid = stabilised_descriptors(bgr, cell, A)
         x = desc * self.scale
         rows, cols = x.shape[:2]
         if self.model.empty:
@@ -538,7 +544,7 @@ class NoveltyDetector:
         raw = (score > self._log_rho) & valid
         mask = island_filter(raw, self.o.island_min_neighbours)
         mask = dilate_cells(mask, self.o.dilate_cells) & valid
-        return NoveltyResult(score, raw, mask, valid, x, A, self.model.empty)
+        return NoveltyResult(score, raw, mask, valid, x, A, self.model.empty, cell)
 
     def learn(self, result: NoveltyResult, exclude: np.ndarray | None = None,
               force: bool = False) -> bool:

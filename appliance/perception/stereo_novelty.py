@@ -7,9 +7,6 @@ regions (plus the matcher's margin), reprojection, height band -> obstacle point
 cells, minus those near the obstacles just found, go to the background model update every
 ``update_every_frames`` frames (never updated inside :meth:`process`).
 
-Our additions beyond the paper (off by default, see docs/stereo-novelty.md):
-``texture_cue`` — a cell whose grey-level gradient energy differs from what the model learnt at
-that place... (see ``extra_cue``).
 """
 from __future__ import annotations
 
@@ -34,7 +31,8 @@ DEFAULT_SCALE = (1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0)
 
 @dataclass(frozen=True)
 class StereoNoveltyConfig(StereoConfig):
-    cell_px: int = _f(32, lo=4, hi=256, doc="cell size in px (paper: 32 -> 40x32 at 1280x1024)")
+    cell_px: int = _f(0, lo=0, hi=256, doc="cell size in px; 0 = image width / 40 (the paper's "
+                                         "32 px, 40x32 cells at 1280x1024; 16 px at 640x512)")
     descriptor_scale: tuple = _f(DEFAULT_SCALE, doc="s of eq. 5: 8 factors for "
                                  "[Lmu amu bmu Lsd asd bsd u v]")
     sigma: float = _f(0.05, lo=1e-4, hi=10.0, doc="kernel width in scaled descriptor units")
@@ -75,7 +73,7 @@ class StereoNoveltyPipeline(Pipeline):
         t0 = time.perf_counter()
         res = self.novelty.detect(fr.left, K, M, inputs.vehicle)
         t1 = time.perf_counter()
-        cam_mask = mask_to_camera(res.mask, res.affine, (W, H), o.cell_px)
+        cam_mask = mask_to_camera(res.mask, res.affine, (W, H), res.cell_px)
         matcher = self._stereo.matcher_for(fr.calib)
         boxes = mask_boxes(cam_mask, 0)
         disp, work = disparity_regions(matcher, fr.left, fr.right, boxes)
@@ -86,7 +84,7 @@ class StereoNoveltyPipeline(Pipeline):
         xy = dedupe_cells(pts[keep, :2])
         t3 = time.perf_counter()
         # obstacle-mask feedback: cells near what was just detected are never learnt
-        exclude = obstacle_cells(px[keep], res.mask.shape, o.cell_px, o.obstacle_margin_px)
+        exclude = obstacle_cells(px[keep], res.mask.shape, res.cell_px, o.obstacle_margin_px)
         self.novelty.learn(res, exclude)
         t4 = time.perf_counter()
         self.last = (res, cam_mask, exclude)
@@ -99,7 +97,7 @@ class StereoNoveltyPipeline(Pipeline):
             "stereo_px_fraction": work / float(H * W),
             "boxes": len(boxes),
             "stabiliser": self.novelty.stabiliser.source,
-            "grid": (rows, cols),
+            "grid": (rows, cols), "cell_px": res.cell_px,
             "ms": {"novelty": 1e3 * (t1 - t0), "stereo": 1e3 * (t2 - t1),
                    "points": 1e3 * (t3 - t2), "learn": 1e3 * (t4 - t3)}})
 
