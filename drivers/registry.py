@@ -28,6 +28,7 @@ _REGISTRY: dict[tuple[str, str], str] = {
     ("link", "can-j1939"): "drivers.can_link:CanJ1939VehicleLink",
     ("laser", "sick-lms1xx"): "drivers.sick_lms1xx:SickLms1xxLaser",
     ("trigger", "serial"): "drivers.strobe_serial:StrobeSerialTrigger",
+    ("stereo", "aravis"): "drivers.aravis_stereo:AravisStereoCamera",
 }
 
 

@@ -1,0 +1,257 @@
+"""GigE stereo through Aravis: debayering, pairing and rectification on recorded frames (the
+real OpenCV chessboard pairs), and the real driver against two of Aravis's own fake GigE Vision
+cameras (``arv-fake-gv-camera-0.8``) in a network namespace the test creates, inside the daemon:
+streaming, packet resends in health, a camera pulled out -> STOP, plugged back -> CLEAR.
+
+The namespace part runs this file as a child process under ``ip netns exec`` (a process joins a
+network namespace as a whole; pytest itself stays outside)."""
+from __future__ import annotations
+
+import glob
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from drivers.aravis_stereo import DEBAYER, FramePairer, to_bgr  # noqa: E402
+from drivers.calibration import (Rectifier, StereoCalibrationResult, calibrate_stereo,  # noqa: E402
+                                 find_chessboard, load_stereo_calibration,
+                                 save_stereo_calibration)
+from hal.types import Mount  # noqa: E402
+
+CAL_DIR = ROOT / "tests/data/real/stereo_calib"
+
+
+def _pairs():
+    import cv2
+    ls = sorted(glob.glob(str(CAL_DIR / "left*.jpg")))
+    rs = sorted(glob.glob(str(CAL_DIR / "right*.jpg")))
+    return [(cv2.imread(a), cv2.imread(b)) for a, b in zip(ls, rs)]
+
+
+@pytest.fixture(scope="module")
+def pairs():
+    return _pairs()
+
+
+@pytest.fixture(scope="module")
+def calibration(pairs):
+    return calibrate_stereo(pairs, (9, 6), 0.025)
+
+
+# ---------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("fmt", sorted(DEBAYER))
+def test_debayer_follows_genicam_naming(pairs, fmt):
+    img = pairs[0][0].astype(np.uint8)
+    b, g, r = img[..., 0], img[..., 1], img[..., 2]
+    pat = fmt[5:7]                                   # e.g. "RG": row 0 = R G, row 1 = G B
+    chan = {"R": r, "G": g, "B": b}
+    order = {"RG": "RGGB", "BG": "BGGR", "GR": "GRBG", "GB": "GBRG"}[pat]
+    raw = np.zeros(img.shape[:2], np.uint8)
+    for k, (dy, dx) in enumerate(((0, 0), (0, 1), (1, 0), (1, 1))):
+        raw[dy::2, dx::2] = chan[order[k]][dy::2, dx::2]
+    out = to_bgr(raw.tobytes(), raw.shape[1], raw.shape[0], fmt)
+    # demosaicing blurs edges; the colour channels must land in the right places
+    err = np.abs(out.astype(int) - img.astype(int))[4:-4, 4:-4].mean(axis=(0, 1))
+    assert err.max() < 12, (fmt, err)
+
+
+def test_pairing_on_recorded_frames(pairs):
+    """The chessboard pairs as two streams at 10 Hz with arrival jitter, one right frame lost
+    and one left frame late beyond the tolerance: every pair that comes out is a true pair."""
+    rng = np.random.default_rng(1)
+    p = FramePairer(tolerance_ns=15_000_000)
+    out = []
+    events = []
+    for i in range(len(pairs)):
+        t = i * 100_000_000
+        if i != 4:
+            events.append((t + int(rng.integers(0, 8e6)), 0, i))
+        if i != 7:
+            events.append((t + int(rng.integers(0, 8e6)), 1, i))
+        if i == 4:
+            events.append((t + 40_000_000, 0, i))    # 40 ms late: no partner within 15 ms
+    for t, side, i in sorted(events):
+        out += p.add(side, t, i)
+    got = [(a, b) for _, a, b in out]
+    assert all(a == b for a, b in got)
+    assert sorted(a for a, _ in got) == [i for i in range(len(pairs)) if i not in (4, 7)]
+    assert p.unmatched == 3                          # right 4, the late left 4, left 7
+
+
+def test_calibration_and_rectification_on_real_chessboards(pairs, calibration, tmp_path):
+    import cv2
+    cal = calibration
+    assert cal.pairs_used == len(pairs) == 13 and cal.rms_px < 0.6
+    path = tmp_path / "cal.json"
+    save_stereo_calibration(cal, path)
+    back = load_stereo_calibration(path)
+    np.testing.assert_allclose(back.K1, cal.K1)
+    rect = Rectifier(back, Mount(x_m=1.0))
+    sc = rect.stereo_calibration
+    assert sc.baseline_m == pytest.approx(np.linalg.norm(cal.T), rel=0.02)
+    assert (sc.camera.width, sc.camera.height) == (640, 480)
+    before, after = [], []
+    for left, right in pairs:
+        cl = find_chessboard(cv2.cvtColor(left, cv2.COLOR_BGR2GRAY), (9, 6))
+        cr = find_chessboard(cv2.cvtColor(right, cv2.COLOR_BGR2GRAY), (9, 6))
+        before.append(np.abs(cl.reshape(-1, 2)[:, 1] - cr.reshape(-1, 2)[:, 1]).mean())
+        rl, rr = rect.rectify(left, right)
+        cl = find_chessboard(cv2.cvtColor(rl, cv2.COLOR_BGR2GRAY), (9, 6))
+        cr = find_chessboard(cv2.cvtColor(rr, cv2.COLOR_BGR2GRAY), (9, 6))
+        if cl is not None and cr is not None:
+            after.append(np.abs(cl.reshape(-1, 2)[:, 1] - cr.reshape(-1, 2)[:, 1]).mean())
+    assert len(after) >= 10
+    assert np.mean(after) < 0.3 < np.mean(before)    # rows line up after rectification
+    with pytest.raises(Exception, match="not a stereo calibration"):
+        StereoCalibrationResult.from_json({"format": "fieldguard-stereo-calibration/1"})
+
+
+def test_calibrate_stereo_tool(tmp_path):
+    out = tmp_path / "cal.json"
+    r = subprocess.run([sys.executable, str(ROOT / "tools/calibrate_stereo.py"),
+                        "--left", str(CAL_DIR / "left*.jpg"), "--right", str(CAL_DIR / "right*.jpg"),
+                        "--square-m", "0.025", "--out", str(out)], capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert "pairs used 13/13" in r.stdout
+    assert json.loads(out.read_text())["image_size"] == [640, 480]
+
+
+# ---------------------------------------------------------------------------------------------
+def _need(tool):
+    if shutil.which(tool) is None:
+        from tests.conftest import missing_tool
+        missing_tool(f"{tool} is not installed (tools/hw_system_deps.sh installs it)")
+
+
+@pytest.fixture
+def netns():
+    _need("ip")
+    _need("arv-fake-gv-camera-0.8")
+    try:
+        import gi
+        gi.require_version("Aravis", "0.8")
+        from gi.repository import Aravis  # noqa: F401
+    except (ImportError, ValueError) as exc:
+        from tests.conftest import missing_tool
+        missing_tool(f"Aravis from Python: {exc} (PyGObject<3.51 + gir1.2-aravis-0.8)")
+    name = f"fgarv{os.getpid()}"
+    r = subprocess.run(["ip", "netns", "add", name], capture_output=True, text=True)
+    if r.returncode:
+        from tests.conftest import missing_tool
+        missing_tool(f"cannot create a network namespace: {r.stderr.strip()}")
+    try:
+        for cmd in (["ip", "link", "set", "lo", "up"],
+                    ["ip", "addr", "add", "127.0.0.2/32", "dev", "lo"]):
+            subprocess.run(["ip", "netns", "exec", name, *cmd], check=True)
+        yield name
+    finally:
+        subprocess.run(["ip", "netns", "pids", name], capture_output=True)
+        out = subprocess.run(["ip", "netns", "pids", name], capture_output=True, text=True).stdout
+        for pid in out.split():
+            try:
+                os.kill(int(pid), 9)
+            except OSError:
+                pass
+        subprocess.run(["ip", "netns", "del", name])
+
+
+def test_fake_gige_pair_through_the_daemon(netns, calibration, tmp_path):
+    cal = tmp_path / "cal.json"
+    save_stereo_calibration(calibration, cal)
+    r = subprocess.run(["ip", "netns", "exec", netns, sys.executable, __file__, "--child",
+                        str(cal)], capture_output=True, text=True, timeout=90, cwd=str(ROOT))
+    lines = [x for x in r.stdout.splitlines() if x.startswith("{")]
+    assert r.returncode == 0 and lines, r.stdout[-2000:] + r.stderr[-3000:]
+    res = json.loads(lines[-1])
+    # streaming through the real driver, both cameras found (one by serial, one by address)
+    assert res["first_state"] == "CLEAR", res
+    assert res["frame_shape"] == [480, 640, 3]
+    assert res["pairs"] >= 5
+    # the right camera loses 0.2 % of its packets; Aravis asks for resends, the fake camera
+    # cannot resend, so frames are dropped: all of it shows in health
+    assert res["resent_packets"] > 0 and res["counters"]["dropped_frames"] > 0
+    assert res["selftest"][0] and "pairs" in res["selftest"][1]
+    # camera pulled out: the frames go stale after timeout_s (0.25 s), STOP on the next cycle
+    assert res["clear_before_kill"]
+    assert res["stop_cycles_after_kill"] is not None
+    assert res["stop_cycles_after_kill"] <= 2 + 3    # 2 cycles after the 0.25 s timeout
+    assert "stereo" in res["stop_reason"]
+    # plugged back in: reconnected with back-off, CLEAR again
+    assert res["clear_after_restart"]
+    assert res["reconnects"] >= 1
+
+
+# ---------------------------------------------------------------------------------------------
+def _child(cal_path: str) -> int:
+    """Runs inside the namespace: two fake cameras, the daemon with the aravis stereo driver and
+    a SICK emulator laser; prints one JSON result line."""
+    from drivers.emulators.sick_lms1xx import SickLms1xxEmulator, sim_scans
+    from tests.test_hw_sick import DaemonRig, wait_for
+
+    def cam(addr, serial, extra=()):
+        return subprocess.Popen(["arv-fake-gv-camera-0.8", "-i", addr, "-s", serial, *extra],
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+    left, right = cam("127.0.0.1", "GV01"), cam("127.0.0.2", "GV02", ("-r", "2"))
+    time.sleep(0.5)
+    geo, scans = sim_scans("stubble-empty", 2)
+    laser = SickLms1xxEmulator(geo, scans).start()
+    res = {}
+    rig = None
+    try:
+        rig = DaemonRig({"laser": {"type": "sick-lms1xx", "host": "127.0.0.1",
+                                   "port": laser.port},
+                         "stereo": {"type": "aravis", "left": "GV01", "right": "127.0.0.2",
+                                    "calibration": cal_path, "trigger": "Software",
+                                    "pixel_format": "BayerRG8", "exposure_us": 5000.0,
+                                    "lost_after_s": 0.6, "backoff_max_s": 0.5}})
+        dev = rig.daemon.devices["stereo"]
+        wait_for(lambda: rig.state == "CLEAR", 10.0)
+        res["first_state"] = rig.state
+        res["first_faults"] = rig.cycles[-1][2] if rig.cycles else None
+        time.sleep(1.0)
+        s = dev.latest()
+        res["frame_shape"] = list(s.left.shape) if s is not None else None
+        c = dev.counters
+        res.update(pairs=c.get("pairs", 0), unmatched=c.get("unmatched", 0),
+                   resent_packets=c.get("resent_packets", 0) + c.get("missing_packets", 0),
+                   selftest=list(dev.selftest()))
+        res["clear_before_kill"] = wait_for(lambda: rig.state == "CLEAR", 5.0)
+        t_kill = rig.now()
+        left.kill()
+        left.wait()
+        wait_for(lambda: rig.cycles_until(t_kill, "STOP") is not None, 3.0)
+        res["stop_cycles_after_kill"] = rig.cycles_until(t_kill, "STOP")
+        res["stop_reason"] = " ".join(next((c[2] for c in list(rig.cycles)
+                                            if c[0] >= t_kill and c[1] == "STOP"), []))
+        time.sleep(1.0)
+        left = cam("127.0.0.1", "GV01")
+        t_back = rig.now()
+        res["clear_after_restart"] = wait_for(
+            lambda: rig.cycles_until(t_back, "CLEAR") is not None, 15.0)
+        res["reconnects"] = dev.counters.get("reconnects", 0)
+        res["counters"] = dict(dev.counters)
+    finally:
+        if rig:
+            rig.close()
+        laser.stop()
+        for p in (left, right):
+            p.kill()
+    print(json.dumps(res), flush=True)
+    return 0
+
+
+if __name__ == "__main__" and len(sys.argv) > 2 and sys.argv[1] == "--child":
+    sys.exit(_child(sys.argv[2]))
