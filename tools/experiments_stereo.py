@@ -78,7 +78,7 @@ def evaluate(run: Path, pipeline: str, cfg: Path | None) -> tuple[dict, str]:
         raise SystemExit(f"{' '.join(cmd)} failed:\n{r.stderr[-2000:]}")
     res = json.loads(r.stdout)
     res["wall_s"] = time.time() - t0
-    shown = " ".join(c if c != FG else "fieldguard" for c in cmd[:-1])
+    shown = " ".join(c if c != FG else "fieldguard" for c in cmd if c != "--json")
     return res, shown
 
 
@@ -143,7 +143,8 @@ def cmd_band(a):
         run = runs / f"{scene}-s{a.scale}-w{a.warmup}"
         for lo in (0.5, 0.7, 0.9, 1.2):
             for pipe in ("stereo", "stereo-novelty"):
-                cfg = write_config(cfgdir / f"band-{pipe}-{lo}.toml", pipe, matcher=a.matcher,
+                cfg = write_config(cfgdir / f"band-{pipe}-{a.matcher}-{lo}.toml", pipe,
+                                   matcher=a.matcher,
                                    band_min_m=lo)
                 res, cmd = evaluate(run, pipe, cfg)
                 print(row_md(f"{scene} {pipe} {a.matcher} band ≥ {lo} m", res, cmd), flush=True)

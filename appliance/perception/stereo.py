@@ -31,7 +31,7 @@ class StereoConfig:
     num_disparities: int = _f(0, lo=0, hi=512,
                               doc="disparity search range in px (multiple of 16); 0 = from "
                                   "min_depth_m and the calibration")
-    min_depth_m: float = _f(5.0, lo=0.5, hi=100.0,
+    min_depth_m: float = _f(3.0, lo=0.5, hi=100.0,
                             doc="with num_disparities = 0: nearest z-depth the search covers")
     block_size: int = _f(0, lo=0, hi=51, doc="matcher block (odd); 0 = 15 for bm, 5 for sgbm")
     uniqueness: int = _f(10, lo=0, hi=100)
