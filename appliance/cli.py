@@ -194,7 +194,7 @@ def cmd_config_check(a) -> int:
 # ---------------------------------------------------------------------------------------------
 # Commands that live in their own modules: each module has ``register(subparsers)`` that adds
 # its sub-parser(s) with ``set_defaults(func=...)``. Add a line here to plug a command in.
-COMMAND_MODULES: list[str] = ["appliance.cli_rgbd", "appliance.cli_novelty"]
+COMMAND_MODULES: list[str] = ["appliance.cli_ops", "appliance.cli_rgbd", "appliance.cli_novelty"]
 
 
 def build_parser() -> argparse.ArgumentParser:

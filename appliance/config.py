@@ -107,7 +107,9 @@ class DeviceConfig:
 @dataclass(frozen=True)
 class StatusConfig:
     socket: str = _f("", doc="status socket path; empty = $RUNTIME_DIRECTORY or /tmp")
-    incident_dir: str = _f("", doc="where incident snapshots go; empty = none")
+    incident_dir: str = _f("", doc="where incident recordings go; empty = none")
+    incident_seconds: float = _f(2.0, lo=0.1, hi=30.0, doc="seconds kept before each STOP")
+    incident_max: int = _f(20, lo=1, hi=10000, doc="incidents kept on disk (oldest removed)")
 
 
 @dataclass(frozen=True)

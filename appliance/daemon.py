@@ -13,6 +13,7 @@ from pathlib import Path
 from appliance.config import Config, DeviceConfig
 from appliance.loop import ApplianceLoop
 from appliance.perception import make_pipeline
+from appliance.recorder import Recorder
 from appliance.service import Notifier
 from appliance.status import StatusServer
 from drivers.registry import create_device
@@ -90,6 +91,7 @@ class Daemon:
         self.status_server: StatusServer | None = None
         self.loop: ApplianceLoop | None = None
         self.pipelines = []
+        self.recorder: Recorder | None = None
         self.notifier = notifier if notifier is not None else Notifier()
         self._ready = False
         self._status_state = None
@@ -113,8 +115,12 @@ class Daemon:
         self.loop = ApplianceLoop(self.cfg, self.clock, self.devices, self.pipelines,
                                   kinds={d.name: d.kind for d in self.cfg.devices})
         self.loop.on_cycle.append(self._notify_cycle)
+        sc = self.cfg.status
+        self.recorder = Recorder(self.cfg.loop.rate_hz, sc.incident_dir, sc.incident_seconds,
+                                 sc.incident_max)
+        self.loop.on_cycle.append(self.recorder.on_cycle)
         if self.serve_status:
-            self.status_server = StatusServer(self.status_socket, self.status)
+            self.status_server = StatusServer(self.status_socket, self.status, self.handle)
             self.status_server.start()
         log.info("fieldguard up: mode=%s devices=%s pipelines=%s status=%s", self.mode,
                  ",".join(self.devices), ",".join(p.name for p in self.pipelines),
@@ -145,7 +151,33 @@ class Daemon:
         hub = self.shared.get("sim_hub")
         if hub is not None:
             doc["sim"] = {"scene": self.cfg.sim.scene, **hub.field.stats()}
+        if self.recorder is not None:
+            doc["incidents"] = list(self.recorder.incidents)[-5:]
         return doc
+
+    # -- requests on the status socket ---------------------------------------------------------
+    def handle(self, words: list[str]):
+        cmd = words[0]
+        if cmd == "snapshot":
+            from appliance.snapshot import compose, encode_png
+            res = self.loop.last if self.loop else None
+            if res is None:
+                return {"error": "no cycle has run yet"}
+            return encode_png(compose(res, self.loop.grid.evidence.copy(), self.cfg,
+                                      self.status()))
+        if cmd == "selftest":
+            return {"devices": selftest_devices(self.devices, self.cfg)}
+        if cmd == "record":
+            if len(words) != 3:
+                return {"error": "usage: record SECONDS PATH"}
+            seconds = float(words[1])
+            if not 0 < seconds <= 3600:
+                return {"error": "seconds must be in (0, 3600]"}
+            job = self.recorder.record(seconds, words[2], self.clock.now_ns())
+            return {"recording": str(job.path), "seconds": seconds}
+        if cmd == "record-status":
+            return {"incidents": list(self.recorder.incidents)}
+        return {"error": f"unknown request {cmd!r}"}
 
     def run(self, max_cycles: int | None = None) -> None:
         self.loop.run(self.stop_event, max_cycles=max_cycles, pace=self.pace)
@@ -166,9 +198,38 @@ class Daemon:
                 p.close()
             except Exception:
                 log.exception("closing pipeline %s", p.name)
+        if self.recorder is not None:
+            self.recorder.close()
         for dev in self.devices.values():
             dev.close()
         if self.status_server is not None:
             self.status_server.stop()
         self.notifier.close()
         log.info("fieldguard stopped")
+
+
+HINTS = {
+    "stereo": "check the camera cables and power, the GigE network (jumbo frames, addresses) and "
+              "the trigger controller",
+    "rgbd": "check the USB cable and power of the depth camera",
+    "laser": "check the laser's power and Ethernet cable, and its IP address in the config",
+    "trigger": "check the trigger controller's serial cable and its port in the config",
+    "link": "check the vehicle link: cable or connection string, baud rate, that the autopilot "
+            "or tractor controller is on and talking",
+}
+
+
+def selftest_devices(devices: dict, cfg: Config) -> list[dict]:
+    out = []
+    types_ = {d.name: (d.kind, d.type) for d in cfg.devices}
+    for name, dev in devices.items():
+        kind, type_ = types_.get(name, (dev.kind, "?"))
+        try:
+            ok, msg = dev.selftest()
+        except Exception as exc:
+            ok, msg = False, f"selftest raised {type(exc).__name__}: {exc}"
+        h = dev.health()
+        out.append({"name": name, "kind": kind, "type": type_, "ok": bool(ok), "message": msg,
+                    "age_s": None if h.age_s is None else round(h.age_s, 3),
+                    "fix": "" if ok else HINTS.get(kind, "check the device")})
+    return out

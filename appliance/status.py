@@ -1,5 +1,12 @@
-"""The status endpoint: a local stream socket that answers every connection with one JSON
-document (the loop's status) and closes. ``fieldguard status`` reads it; it never opens hardware.
+"""The status endpoint: a local stream socket. A client sends one request line and gets one
+answer, then the connection closes:
+
+- ``status`` (or nothing within 0.3 s): one JSON document, the loop's status;
+- any other word: handed to the daemon's request handler (``snapshot`` answers PNG bytes,
+  ``selftest`` and ``record SECONDS PATH`` answer JSON).
+
+``fieldguard status``/``watch``/``snapshot``/``selftest``/``record`` use it; none of them opens
+hardware.
 """
 from __future__ import annotations
 
@@ -22,9 +29,10 @@ def default_socket_path() -> str:
 
 
 class StatusServer:
-    def __init__(self, path: str, provider):
+    def __init__(self, path: str, provider, handler=None):
         self.path = path or default_socket_path()
         self.provider = provider
+        self.handler = handler      # f(words: list[str]) -> bytes | dict
         self._sock: socket.socket | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
@@ -62,9 +70,26 @@ class StatusServer:
             except OSError:
                 return
             try:
-                conn.settimeout(1.0)
-                doc = self.provider()
-                conn.sendall(json.dumps(doc, default=str).encode() + b"\n")
+                conn.settimeout(0.3)
+                try:
+                    line = conn.makefile("rb").readline(4096).decode(errors="replace").strip()
+                except (socket.timeout, OSError):
+                    line = ""
+                conn.settimeout(5.0)
+                words = line.split()
+                if not words or words[0] == "status":
+                    answer = self.provider()
+                elif self.handler is not None:
+                    try:
+                        answer = self.handler(words)
+                    except Exception as exc:          # a bad request never hurts the daemon
+                        answer = {"error": f"{type(exc).__name__}: {exc}"}
+                else:
+                    answer = {"error": f"unknown request {words[0]!r}"}
+                if isinstance(answer, (bytes, bytearray)):
+                    conn.sendall(bytes(answer))
+                else:
+                    conn.sendall(json.dumps(answer, default=str).encode() + b"\n")
             except Exception as exc:
                 log.warning("status request failed: %s", exc)
             finally:
@@ -79,16 +104,18 @@ class StatusServer:
         Path(self.path).unlink(missing_ok=True)
 
 
-def read_status(path: str | None = None, timeout_s: float = 2.0) -> dict:
-    """Read the daemon's status. Raises ConnectionError with a clear message if none answers."""
+def request(path: str | None, line: str, timeout_s: float = 5.0) -> bytes:
+    """Send one request line to the daemon and return its whole answer. ConnectionError with a
+    clear message if no daemon answers."""
     p = path or default_socket_path()
     s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     s.settimeout(timeout_s)
     try:
         s.connect(p)
+        s.sendall(line.encode() + b"\n")
         chunks = []
         while True:
-            b = s.recv(65536)
+            b = s.recv(1 << 16)
             if not b:
                 break
             chunks.append(b)
@@ -99,4 +126,16 @@ def read_status(path: str | None = None, timeout_s: float = 2.0) -> dict:
         raise ConnectionError(f"the daemon on {p} did not answer within {timeout_s} s") from None
     finally:
         s.close()
-    return json.loads(b"".join(chunks))
+    return b"".join(chunks)
+
+
+def read_status(path: str | None = None, timeout_s: float = 2.0) -> dict:
+    """Read the daemon's status. Raises ConnectionError with a clear message if none answers."""
+    return json.loads(request(path, "status", timeout_s))
+
+
+def request_json(path: str | None, line: str, timeout_s: float = 10.0) -> dict:
+    doc = json.loads(request(path, line, timeout_s))
+    if isinstance(doc, dict) and "error" in doc and len(doc) == 1:
+        raise RuntimeError(doc["error"])
+    return doc

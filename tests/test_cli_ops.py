@@ -1,0 +1,126 @@
+"""Each technician command against a running daemon on the simulated field."""
+import csv
+import dataclasses
+import json
+import threading
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from appliance.cli import main
+from appliance.config import StatusConfig, default_config
+from appliance.daemon import Daemon, sim_config
+from drivers.runfolder import RunReader
+
+
+@pytest.fixture(scope="module")
+def daemon(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("daemon")
+    sock = str(tmp / "status.sock")
+    cfg = default_config()
+    cfg = dataclasses.replace(cfg, perception=dataclasses.replace(
+        cfg.perception, pipelines=("laser",)))
+    d = Daemon(sim_config(cfg), mode="sim", pace=1.0, status_socket=sock)
+    d.start()
+    th = threading.Thread(target=d.run, daemon=True)
+    th.start()
+    time.sleep(1.5)
+    yield d, sock, tmp
+    d.request_stop()
+    th.join(5)
+    d.shutdown()
+
+
+def test_watch_draws_the_status_screen(daemon, capsys):
+    d, sock, _ = daemon
+    assert main(["watch", "--socket", sock, "--count", "2", "--interval", "0.2"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("fieldguard watch") == 2 and "laser" in out and "loop" in out
+
+
+def test_snapshot_is_a_readable_picture(daemon, tmp_path, capsys):
+    d, sock, _ = daemon
+    png = tmp_path / "snap.png"
+    assert main(["snapshot", "-o", str(png), "--socket", sock]) == 0
+    img = cv2.imread(str(png))
+    assert img is not None and img.shape[0] > 400 and img.shape[1] > 300
+    # the header is coloured by the state (STOP red, SLOW amber, CLEAR green)
+    b, g, r = img[5, 5]
+    assert (r > 150 and g < 100) or (g > 150)
+
+
+def test_selftest_asks_the_running_daemon(daemon, capsys):
+    d, sock, _ = daemon
+    rc = main(["selftest", "--socket", sock])
+    out = capsys.readouterr().out
+    assert "asked the running daemon" in out
+    assert "PASS  laser" in out and "PASS  link" in out
+    assert rc == 0
+
+
+def test_selftest_fails_a_dead_device_with_a_fix(daemon, capsys):
+    d, sock, _ = daemon
+    d.devices["laser"].unplugged = True
+    try:
+        time.sleep(0.6)
+        rc = main(["selftest", "--socket", sock])
+        out = capsys.readouterr().out
+    finally:
+        d.devices["laser"].unplugged = False
+    assert rc == 1 and "FAIL  laser" in out and "fix:" in out and "power" in out
+
+
+def test_record_then_replay(daemon, tmp_path, capsys):
+    d, sock, _ = daemon
+    out = tmp_path / "rec"
+    assert main(["record", "--seconds", "1.0", "--out", str(out), "--socket", sock]) == 0
+    time.sleep(2.5)
+    r = RunReader(out)
+    assert 8 <= len(r) <= 12
+    assert r.laser(0) is not None and r.info.laser is not None
+    with open(out / "frames.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert {row["gate_state"] for row in rows} <= {"STOP", "SLOW", "CLEAR"}
+    # never overwritten
+    assert main(["record", "--seconds", "1", "--out", str(out), "--socket", sock]) == 1
+    assert "not empty" in capsys.readouterr().err
+    # and it plays back through the loop
+    assert main(["replay", str(out), "--fast", "--socket", str(tmp_path / "r.sock")]) == 0
+
+
+def test_selftest_without_daemon_opens_the_config(tmp_path, capsys):
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[devices.laser]\ntype = 'sim'\n[devices.link]\ntype = 'sim'\n")
+    rc = main(["selftest", "--config", str(cfg), "--sim", "--seconds", "0.5"])
+    out = capsys.readouterr().out
+    assert rc == 0 and "opened the devices" in out and "PASS  laser" in out
+
+
+def test_commands_without_daemon_say_so(tmp_path, capsys):
+    sock = str(tmp_path / "none.sock")
+    assert main(["snapshot", "-o", str(tmp_path / "x.png"), "--socket", sock]) == 2
+    assert "no fieldguard daemon" in capsys.readouterr().err
+    assert main(["record", "--seconds", "1", "--out", str(tmp_path / "r"), "--socket", sock]) == 2
+
+
+def test_incident_ring_buffer_keeps_the_seconds_before_a_stop(tmp_path):
+    inc = tmp_path / "incidents"
+    cfg = dataclasses.replace(default_config(), status=StatusConfig(
+        incident_dir=str(inc), incident_seconds=1.0, incident_max=2))
+    d = Daemon(sim_config(cfg), mode="sim", pace=0.0, serve_status=False)
+    d.start()
+    try:
+        d.run(max_cycles=150)      # the vehicle stops for the first obstacle within ~8 s
+    finally:
+        d.shutdown()
+    runs = sorted(p for p in inc.iterdir() if (p / "run.toml").exists())
+    assert runs, "no incident written"
+    assert len(runs) <= 2
+    r = RunReader(runs[0])
+    assert len(r) >= 10                       # 1 s before + 1 s after
+    with open(runs[0] / "frames.csv") as f:
+        states = [row["gate_state"] for row in csv.DictReader(f)]
+    assert "STOP" in states and states[0] != "STOP"
+    assert "stop" in runs[0].name.lower() or "obstacle" in runs[0].name.lower()
