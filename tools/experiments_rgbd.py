@@ -279,9 +279,14 @@ def cmd_variants(a) -> int:
     for extra in a.set or []:
         name, _, kv = extra.partition(":")
         opts = dict(base)
-        for item in kv.split(","):
+        for item in kv.split(";"):
             k, _, v = item.partition("=")
-            opts[k] = json.loads(v) if v[:1] in "0123456789-[tf" else v
+            try:
+                opts[k] = json.loads(v)
+            except ValueError:
+                opts[k] = v
+            if isinstance(opts[k], list):
+                opts[k] = tuple(opts[k])
         variants[name] = {"options": opts}
     rows = run_variants(a.runs, variants, a.step, model)
     print_table(rows, f"Failure modes and future work: {', '.join(a.runs)}, every {a.step} "
@@ -309,7 +314,7 @@ def main(argv=None) -> int:
         if name == "variants":
             p.add_argument("--mog-model", default=None, help="a mixture model to compare")
             p.add_argument("--set", action="append",
-                           help="extra variant NAME:key=value,key=value on the baseline")
+                           help="extra variant NAME:key=value;key=value on the baseline")
         p.set_defaults(func=fn)
     a = ap.parse_args(argv)
     return a.func(a)

@@ -53,6 +53,8 @@ class RgbdPipelineConfig:
     depth_median_px: int = _f(3, choices=(0, 3, 5), doc="median filter of the depth before "
                                                           "the slope (paper: 0 = none)")
     dilate_px: int = _f(3, lo=1, hi=15, doc="square dilation of the suspected map (3 = paper)")
+    morphology: str = _f("dilate", choices=("dilate", "close"),
+                         doc="dilate (paper) or close the suspected map")
     colour_threshold: float = _f(3.5, lo=0.1, hi=100.0, doc="Mahalanobis distance for a class")
     texture: str = _f("after-colour", choices=("after-colour", "always", "off"),
                       doc="when the LBP texture classifier runs")
@@ -64,6 +66,8 @@ class RgbdPipelineConfig:
                                     doc="only surface lower than this counts as the ground a "
                                         "group must stand on (0 = any surface, the paper)")
     traversable: tuple = _f(("bush", "pepper"), doc="class names the vehicle may drive through")
+    occlusion_filter: bool = _f(True, doc="do not project the far side of a depth edge that the "
+                                          "slope pair and the dilation add to a group")
     holes: bool = _f(False, doc="depth holes standing on the ground are obstacles (not in paper)")
     hole_min_pixels: int = _f(150, lo=1, hi=100000)
     use_vehicle_pitch: bool = _f(False, doc="add the vehicle's pitch to the mount pitch")
@@ -133,7 +137,8 @@ class RgbdPipeline(Pipeline):
         else:
             depth_s = depth
         slope = slope_map(depth_s, cam.fy, cam.cy, pitch, lo, hi, o.slope_step_px)
-        sus, surface = suspected_map(slope, o.slope_threshold_deg, o.dilate_px)
+        sus, surface = suspected_map(slope, o.slope_threshold_deg, o.dilate_px,
+                                     o.morphology == "close")
         if o.ground_max_height_m > 0:
             # our addition: bush tops are level too, but an obstacle stands on the ground
             surface &= height_map(depth_s, cam.fy, cam.cy, pitch, mount.z_m) < \
@@ -154,7 +159,17 @@ class RgbdPipeline(Pipeline):
             tex_obs, n_tex = obstacle_groups(cand_t, surface, o.min_pixels, o.contact_px)
 
         obs = col_obs | tex_obs if tex_obs is not None else col_obs.copy()
-        pts = self._points(depth, obs, cam, mount, lo, hi)
+        proj = obs
+        if o.occlusion_filter and obs.any():
+            # eq. 4 marks the upper pixel of a pair, so at an occlusion edge (the top of a box)
+            # the ground BEHIND is marked, and the dilation adds more background: keep only
+            # pixels no farther than 10 % beyond the nearest depth around them
+            zf = np.where(depth > 0, depth, np.float32(np.inf)).astype(np.float32)
+            k = max(o.slope_step_px, 1) * 2 + 1
+            zmin = cv2.erode(zf, np.ones((k, max(o.dilate_px, 3)), np.uint8))
+            with np.errstate(over="ignore", invalid="ignore"):
+                proj = obs & (zf <= zmin * np.float32(1.1))
+        pts = self._points(depth, proj, cam, mount, lo, hi)
 
         # our addition: shiny surfaces return no depth at all
         hole_obs = None

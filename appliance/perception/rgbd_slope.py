@@ -68,7 +68,7 @@ def height_map(depth_m: np.ndarray, fy: float, cy: float, pitch_rad: float,
 
 
 def suspected_map(slope_deg: np.ndarray, threshold_deg: float = 40.0,
-                  dilate_px: int = 3) -> tuple[np.ndarray, np.ndarray]:
+                  dilate_px: int = 3, close: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """(suspected, surface) boolean maps: slope above the threshold, dilated by a dilate_px x
     dilate_px square (the paper's 3x3, closing small gaps); surface = valid slope at or under the
     threshold and not suspected after the dilation."""
@@ -76,6 +76,10 @@ def suspected_map(slope_deg: np.ndarray, threshold_deg: float = 40.0,
         sus = slope_deg > np.float32(threshold_deg)
         low = slope_deg <= np.float32(threshold_deg)
     if dilate_px > 1:
-        sus = cv2.dilate(sus.view(np.uint8), np.ones((dilate_px, dilate_px), np.uint8)) > 0
+        k = np.ones((dilate_px, dilate_px), np.uint8)
+        if close:       # dilation then erosion: closes the gaps without growing the region
+            sus = cv2.morphologyEx(sus.view(np.uint8), cv2.MORPH_CLOSE, k) > 0
+        else:
+            sus = cv2.dilate(sus.view(np.uint8), k) > 0
     return sus, low & ~sus
 
