@@ -98,6 +98,18 @@ def test_colour_spaces_follow_the_paper_formulas():
     assert np.allclose(lab, ref) and 0 <= lab[0] <= 100 and lab[1] < 0   # green: a* < 0
 
 
+def test_no_suspected_pixels_in_any_colour_space():
+    empty = np.zeros((0, 3), np.uint8)
+    for space in COLOUR_SPACES:
+        assert colour_features(empty, space).shape == (0, 3)
+    frame, _ = _frame(CRATE)
+    flat = DepthFrame(0, 0, frame.color, np.zeros_like(frame.depth_m), frame.calib)
+    for space in COLOUR_SPACES:
+        pipe = RgbdPipeline(RgbdPipelineConfig(colour_space=space, texture="always"),
+                            model=_model())
+        assert len(pipe.process(SensorInputs(0, rgbd=flat)).points_xy) == 0
+
+
 def test_mahalanobis_matches_scipy_and_the_classifier():
     rng = np.random.default_rng(3)
     a = rng.multivariate_normal([80, 120, 60], [[300, 200, 50], [200, 400, 80], [50, 80, 200]],

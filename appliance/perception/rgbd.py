@@ -58,6 +58,9 @@ class RgbdPipelineConfig:
     colour_threshold: float = _f(3.5, lo=0.1, hi=100.0, doc="Mahalanobis distance for a class")
     texture: str = _f("after-colour", choices=("after-colour", "always", "off"),
                       doc="when the LBP texture classifier runs")
+    texture_scope: str = _f("suspected", choices=("suspected", "traversable-colour"),
+                            doc="pixels texture may turn into obstacles: every suspected one "
+                                "(paper) or only those colour called traversable")
     texture_window_px: int = _f(20, lo=3, hi=100)
     texture_threshold: float = _f(0.5, lo=0.0, hi=2.0, doc="chi-square distance for a class")
     min_pixels: int = _f(30, lo=1, hi=100000, doc="smallest obstacle group")
@@ -156,6 +159,10 @@ class RgbdPipeline(Pipeline):
         if o.texture == "always" or (o.texture == "after-colour" and n_col > 0):
             tmap = self._texture_map(color, sus)
             cand_t = sus & not_traversable(tmap, self.traversable_idx)
+            if o.texture_scope == "traversable-colour":
+                # texture is there for obstacles coloured like a class: let it judge only the
+                # pixels colour let through
+                cand_t &= ~not_traversable(cmap, self.traversable_idx)
             tex_obs, n_tex = obstacle_groups(cand_t, surface, o.min_pixels, o.contact_px)
 
         obs = col_obs | tex_obs if tex_obs is not None else col_obs.copy()

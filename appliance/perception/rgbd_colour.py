@@ -33,6 +33,8 @@ def colour_features(bgr: np.ndarray, space: str) -> np.ndarray:
     """(..., 3) uint8 BGR -> (..., 3) float32 features of colour space ``space``."""
     img = np.asarray(bgr)
     if space == "lab":
+        if img.size == 0:                       # OpenCV refuses an empty image
+            return np.zeros(img.shape, np.float32)
         flat = img.reshape(-1, 1, 3)
         lab = cv2.cvtColor(flat.astype(np.float32) * np.float32(1 / 255), cv2.COLOR_BGR2Lab)
         return lab.reshape(img.shape).astype(np.float32)
