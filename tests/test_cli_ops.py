@@ -76,7 +76,13 @@ def test_record_then_replay(daemon, tmp_path, capsys):
     d, sock, _ = daemon
     out = tmp_path / "rec"
     assert main(["record", "--seconds", "1.0", "--out", str(out), "--socket", sock]) == 0
-    time.sleep(2.5)
+    deadline, last = time.monotonic() + 20, -1
+    while time.monotonic() < deadline:        # wait until the writer has finished the folder
+        time.sleep(0.5)
+        n = sum(1 for _ in open(out / "frames.csv")) if (out / "frames.csv").exists() else 0
+        if n == last and n > 1:
+            break
+        last = n
     r = RunReader(out)
     assert 8 <= len(r) <= 12
     assert r.laser(0) is not None and r.info.laser is not None

@@ -2,6 +2,7 @@
 # Sets up and runs the whole test suite. `.ci/run` calls exactly this.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+bash tools/hw_system_deps.sh   # Debian: aravis + fake GigE camera, socat, iproute2, build deps
 bash tools/setup.sh
-bash tools/ci_system_deps.sh   # iproute2 (network namespaces), headless MAVProxy
+bash tools/ci_system_deps.sh   # headless MAVProxy
 exec .venv/bin/python -m pytest "$@"
