@@ -115,6 +115,8 @@ class Daemon:
         self.loop = ApplianceLoop(self.cfg, self.clock, self.devices, self.pipelines,
                                   kinds={d.name: d.kind for d in self.cfg.devices})
         self.loop.on_cycle.append(self._notify_cycle)
+        if self.mode == "replay":
+            self.loop.on_cycle.append(self._end_of_replay)
         sc = self.cfg.status
         self.recorder = Recorder(self.cfg.loop.rate_hz, sc.incident_dir, sc.incident_seconds,
                                  sc.incident_max)
@@ -125,6 +127,13 @@ class Daemon:
         log.info("fieldguard up: mode=%s devices=%s pipelines=%s status=%s", self.mode,
                  ",".join(self.devices), ",".join(p.name for p in self.pipelines),
                  self.status_server.path if self.status_server else "-")
+
+    def _end_of_replay(self, res) -> None:
+        """A replay ends a few cycles after its last frame (long enough to show the STOP that
+        stale data causes), unless the run loops."""
+        p = self.shared.get("replay_player")
+        if p is not None and not p.loop and p.finished(res.stamp_ns - 5 * self.loop.period_ns):
+            self.request_stop()
 
     def _notify_cycle(self, res) -> None:
         """sd_notify: READY after the first gate cycle; STATUS on change (reason changes at most
