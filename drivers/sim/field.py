@@ -51,7 +51,7 @@ def laser_geometry() -> LaserGeometry:
 
 
 def _intr(c: PinholeCalibration) -> Intrinsics:
-    return Intrinsics(c.width, c.height, c.fx, c.fy, c.cx, c.cy)
+    return c
 
 
 @dataclass(frozen=True)

@@ -21,20 +21,13 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
+from hal.types import PinholeCalibration
+
 from .world import MAT_GROUND, MAT_OBSTACLE, MAT_SKY, MAT_STUBBLE, World
 
 
-@dataclass(frozen=True)
-class Intrinsics:
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-
-    def matrix(self) -> np.ndarray:
-        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
+# the renderer's camera model is the HAL's pinhole calibration (same fields, same matrix())
+Intrinsics = PinholeCalibration
 
 
 @dataclass
