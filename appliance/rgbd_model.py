@@ -26,6 +26,8 @@ from __future__ import annotations
 
 import json
 import zipfile
+from contextlib import ExitStack
+from importlib import resources
 from pathlib import Path
 
 import cv2
@@ -39,8 +41,18 @@ from hal.errors import ConfigError
 FORMAT = "fieldguard-rgbd-classes"
 VERSION = 1
 ANNOTATION_FORMAT = "fieldguard-rgbd-annotations"
-ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_MODEL = ROOT / "deploy" / "models" / "greenhouse-classes.npz"
+# the shipped greenhouse model is package data (appliance/models/), so an installed wheel has it
+DEFAULT_MODEL_RESOURCE = ("appliance", "models/greenhouse-classes.npz")
+
+
+def default_model_path() -> Path:
+    """Filesystem path of the shipped model (importlib.resources; a zipped install is
+    extracted to a temporary file that lives as long as the process)."""
+    ref = resources.files(DEFAULT_MODEL_RESOURCE[0]).joinpath(DEFAULT_MODEL_RESOURCE[1])
+    return _RESOURCES.enter_context(resources.as_file(ref))
+
+
+_RESOURCES = ExitStack()
 
 
 class RgbdModelError(ConfigError):
@@ -71,9 +83,10 @@ def save(model: RgbdClassModel, path: str | Path) -> Path:
 
 
 def load(path: str | Path | None = None) -> RgbdClassModel:
-    """Read a model file (None = the shipped greenhouse model); RgbdModelError naming the file
-    and what is wrong when it is missing, not a model, of another version or inconsistent."""
-    p = Path(path) if path else DEFAULT_MODEL
+    """Read a model file (None or "" = the shipped greenhouse model, package data); RgbdModelError
+    naming the file and what is wrong when it is missing, not a model, of another version or
+    inconsistent."""
+    p = Path(path) if path else default_model_path()
     where = f"rgbd class model {p}"
     if not p.is_file():
         raise RgbdModelError(f"{where}: no such file (train one with `fieldguard train-classes`)",

@@ -1,5 +1,6 @@
 """The RGB-D pipeline (greenhouse paper): slope, colour, texture, decision, model file, training,
 real depth frames."""
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -360,9 +361,17 @@ def make_pipeline_with_model(path):
     return make_pipeline("rgbd", cfg)
 
 
-def test_shipped_greenhouse_model_loads_with_the_paper_classes():
+def test_shipped_greenhouse_model_loads_with_the_paper_classes(tmp_path):
     m = rgbd_model.load(None)
     assert m.classes == ("bush", "pepper", "ground", "cover")
+    # package data (an installed wheel has it), found through importlib.resources
+    p = rgbd_model.default_model_path()
+    assert p.is_file() and p.parent.name == "models" and p.parent.parent.name == "appliance"
+    assert rgbd_model.load("").classes == m.classes
+    # a configured path still overrides the shipped model
+    other = rgbd_model.save(dataclasses.replace(m, classes=("a", "b", "c", "d")),
+                            tmp_path / "other.npz")
+    assert rgbd_model.load(str(other)).classes == ("a", "b", "c", "d")
     pipe = make_pipeline("rgbd")
     assert isinstance(pipe, RgbdPipeline) and pipe.traversable_idx == [0, 1]
 

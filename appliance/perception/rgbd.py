@@ -44,7 +44,8 @@ NOT_CLASSIFIED = -2          # class map value of pixels that were not suspected
 @dataclass(frozen=True)
 class RgbdPipelineConfig:
     model: str = _f("", doc="class model file from `fieldguard train-classes`; "
-                            "empty = the shipped greenhouse model (deploy/models/)")
+                            "empty = the shipped greenhouse model (package data: "
+                            "appliance/models/greenhouse-classes.npz)")
     colour_space: str = _f("rgb", choices=COLOUR_SPACES)
     min_range_m: float = _f(0.5, lo=0.0, hi=20.0, doc="depth below this is ignored")
     max_range_m: float = _f(5.0, lo=0.1, hi=50.0, doc="depth above this is ignored")
