@@ -19,6 +19,9 @@ SCENES: dict[str, str] = {
     "greenhouse": "straight 1.2 m path between rows of ~1 m pepper bushes; crates, buckets, a "
                   "person, a bush-green crate on the path; low leaves overhanging the path",
     "stubble-empty": "the stubble field by day with no obstacles at all (false-positive tests)",
+    "stubble-coverage": "the stubble field by day covered lane by lane for long closed-loop runs: "
+                        "14 lanes of 250 m, 6 m apart, headland U-turns; the papers' obstacle "
+                        "kinds on some lanes and midway between lanes, the rest of the lanes clear",
 }
 
 STUBBLE_CLASSES = ("person", "person-crouching", "vehicle", "drum", "tank", "pole", "barrel",
@@ -111,6 +114,46 @@ def _stubble_obstacles(rng: np.random.Generator, path_len: float) -> list[Obstac
     return obs
 
 
+# stubble-coverage: lane length, lane spacing, lanes (3.6 km of path: ~24 min at 2.5 m/s)
+COVERAGE_LANES = (250.0, 6.0, 14)
+
+
+def _coverage_obstacles(rng: np.random.Generator, length_m: float, spacing_m: float,
+                        passes: int) -> list[Obstacle]:
+    """Obstacles for a long coverage run. Each lane gets 0-2 obstacles ON it (centre within
+    0.3 m of the lane, so a vehicle that never stops hits them) and the gap to the next lane
+    0-2 small ones midway between the lanes (seen from both lanes, hit from neither). Nothing
+    within 30 m of the headlands, nothing in the first 60 m of the first lane (the novelty
+    model learns the first frame whole), obstacles on a lane at least 40 m apart. The kinds,
+    sizes and colours are those of the stubble obstacle course."""
+    protos = {o.cls: o for o in _stubble_obstacles(np.random.default_rng(0), 0.0)}
+    small = ("person", "person-crouching", "drum", "barrel", "crate", "look-alike-drum", "pole")
+    j = lambda s: float(rng.uniform(-s, s))  # noqa: E731
+    obs: list[Obstacle] = []
+
+    def place(n: int, lo: float, classes, y: float, jitter_y: float) -> None:
+        xs: list[float] = []
+        for _ in range(50):
+            if len(xs) == n:
+                break
+            x = float(rng.uniform(lo, length_m - 30.0))
+            if all(abs(x - q) >= 40.0 for q in xs):
+                xs.append(x)
+        for x in sorted(xs):
+            cls = classes[int(rng.integers(len(classes)))]
+            pr = protos[cls]
+            obs.append(Obstacle(f"c{len(obs) + 1}", cls, pr.shape, x, y + j(jitter_y),
+                                pr.yaw_deg + j(40), pr.length_m, pr.width_m, pr.height_m,
+                                pr.colour, pr.colour2, pr.texture, pr.shiny))
+
+    for p in range(passes):
+        y = p * spacing_m
+        place(int(rng.choice([0, 1, 1, 2])), 60.0 if p == 0 else 30.0, STUBBLE_CLASSES, y, 0.3)
+        if p < passes - 1:
+            place(int(rng.choice([0, 1, 1, 2])), 30.0, small, y + spacing_m / 2, 0.2)
+    return obs
+
+
 def _greenhouse_obstacles(rng: np.random.Generator) -> list[Obstacle]:
     j = lambda s: float(rng.uniform(-s, s))  # noqa: E731
     green = (0.17, 0.27, 0.17)
@@ -146,9 +189,14 @@ def build_scene(name: str, seed: int = 0) -> Scene:
                      footprint=(0.1, 1.2, 0.8), wheelbase_m=0.8, track_m=0.6, bounce_deg=0.3)
     rng = np.random.default_rng([seed, 1])
     waves = make_waves(rng, 0.20, n=6, wavelengths=(5.0, 40.0))
-    length, spacing, passes = 300.0, 6.0, 8
-    path = _lawnmower(length, spacing, passes)
-    obstacles = _stubble_obstacles(rng, length)
+    if name == "stubble-coverage":
+        length, spacing, passes = COVERAGE_LANES
+        path = _lawnmower(length, spacing, passes)
+        obstacles = _coverage_obstacles(rng, length, spacing, passes)
+    else:
+        length, spacing, passes = 300.0, 6.0, 8
+        path = _lawnmower(length, spacing, passes)
+        obstacles = _stubble_obstacles(rng, length)
     if name == "stubble-empty":
         obstacles = []
     world = World("stubble", seed, obstacles, waves)
