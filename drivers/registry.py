@@ -29,6 +29,7 @@ _REGISTRY: dict[tuple[str, str], str] = {
     ("laser", "sick-lms1xx"): "drivers.sick_lms1xx:SickLms1xxLaser",
     ("trigger", "serial"): "drivers.strobe_serial:StrobeSerialTrigger",
     ("stereo", "aravis"): "drivers.aravis_stereo:AravisStereoCamera",
+    ("rgbd", "freenect"): "drivers.freenect_rgbd:FreenectDepthCamera",
 }
 
 

@@ -6,8 +6,9 @@
 #     (newer PyGObject needs girepository-2.0, which Debian 12 lacks)
 #   socat: the pty pair between the strobe driver and its emulator
 #   iproute2: `ip netns` for the fake cameras' private network
-#   libfreenect-dev libfreenect-bin: the Kinect library and fakenect (the freenect driver is
-#     not written yet; installed so the `freenect` Python binding builds)
+#   libfreenect-dev libfreenect-bin: the Kinect library (headers: the `freenect` Python binding
+#     builds against them, and so does the fakenect preload stub) and fakenect, its playback
+#     library, which the freenect driver's tests play recorded dumps through
 set -euo pipefail
 cd "$(dirname "$0")/.."
 pkgs=(aravis-tools aravis-tools-cli gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev
@@ -29,4 +30,5 @@ if [ -x "$PY" ]; then
   "$PY" -c "import gi" 2>/dev/null || "$PY" -m pip install --quiet 'PyGObject<3.51'
   "$PY" -c "import serial" 2>/dev/null || "$PY" -m pip install --quiet pyserial
   "$PY" -c "import sick_scan_tcp" 2>/dev/null || "$PY" -m pip install --quiet sick-scan-tcp
+  "$PY" -c "import freenect" 2>/dev/null || "$PY" -m pip install --quiet freenect
 fi

@@ -1,0 +1,249 @@
+"""Kinect-class RGB-D through libfreenect, tested at the wire with libfreenect's own playback
+(fakenect): dumps written by drivers/emulators/fakenect_dump.py are played by Debian's
+fakenect library through the real Python binding in the driver's helper process. Frames
+arrive, depth round-trips in millimetres, invalid depth stays 0, a silent device goes stale and
+is restarted, the end of the dump is a fault, closing twice is safe, selftest; and the daemon
+(`fieldguard run` with a hardware config) drives the rgbd pipeline from it."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drivers.emulators.fakenect_dump import (DumpWriter, build_stub, depth_to_mm, fakenect_libdir,
+                                              read_frame, sim_dump)
+from hal.clock import MonotonicClock
+from hal.health import Health
+from tests.test_hw_sick import DaemonRig, wait_for
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+# ---------------------------------------------------------------------------------------------
+def test_dump_format_is_what_fakenect_reads(tmp_path):
+    """INDEX.txt lists r-/d- files named <type>-<time>-<timestamp>.<ext> in order; PGM/PPM
+    headers on one line (fakenect skips to the first newline); depth in host byte order."""
+    c = np.zeros((480, 640, 3), np.uint8)
+    c[..., 2] = 200                                     # BGR: red
+    d = np.arange(480 * 640, dtype=np.uint32).reshape(480, 640).astype(np.uint16)
+    with DumpWriter(tmp_path / "dump", fps=10) as w:
+        w.add(c, d)
+        w.add(c, d, gap_s=2.0)
+    names = (tmp_path / "dump/INDEX.txt").read_text().split()
+    assert [n[0] for n in names] == ["r", "d", "r", "d"]
+    times = [float(n.split("-")[1]) for n in names]
+    assert times[2] - times[0] == pytest.approx(2.1)       # 1/fps + the gap
+    for n in names:                                        # fakenect's sscanf("%c-%lf-%u-%*s")
+        kind, t, rest = n.split("-", 2)
+        int(rest.split(".")[0])
+    raw = (tmp_path / "dump" / names[1]).read_bytes()
+    assert raw.startswith(b"P5 640 480 65535\n") and len(raw) == 17 + 640 * 480 * 2
+    np.testing.assert_array_equal(read_frame(tmp_path / "dump" / names[1]), d)
+    np.testing.assert_array_equal(read_frame(tmp_path / "dump" / names[0])[0, 0], [200, 0, 0])
+    with pytest.raises(FileExistsError):
+        DumpWriter(tmp_path / "dump")
+    with pytest.raises(ValueError):
+        DumpWriter(tmp_path / "d2").add(c[:10], d)
+
+
+def test_depth_to_mm():
+    m = np.array([[0.0, 0.5, 1.2344, np.nan], [-1.0, 4.9996, 12.0, np.inf]], np.float32)
+    mm = depth_to_mm(m)
+    assert mm.dtype == np.uint16
+    assert mm.tolist() == [[0, 500, 1234, 0], [0, 5000, 10000, 0]]
+
+
+# ---------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def stub(tmp_path_factory):
+    if fakenect_libdir() is None:
+        from tests.conftest import missing_tool
+        missing_tool("fakenect (libfreenect-bin) is not installed (tools/hw_system_deps.sh)")
+    if shutil.which("gcc") is None or not Path("/usr/include/libfreenect.h").exists():
+        from tests.conftest import missing_tool
+        missing_tool("gcc + libfreenect-dev are needed to build the fakenect stub")
+    r = subprocess.run([sys.executable, "-c", "import freenect"], capture_output=True, text=True,
+                       env={**os.environ, **_bare_env()})
+    if r.returncode != 0:
+        from tests.conftest import missing_tool
+        missing_tool(f"the freenect Python binding does not import: {r.stderr.strip()[-200:]} "
+                     f"(pip install freenect; needs libfreenect-dev)")
+    return build_stub(tmp_path_factory.mktemp("stub"))
+
+
+def _bare_env():
+    return {"LD_PRELOAD": "", "FAKENECT_PATH": ""}
+
+
+def ramp_dump(path, frames=6, fps=15.0, gap_after=None, gap_s=0.0):
+    """Frame i: colour (B, G, R) = (i, 100, 200); depth = 500 + (x + y) mod 4000 + i mm, with
+    holes (0) on every 7th column. Returns the expected depth per frame."""
+    yy, xx = np.mgrid[0:480, 0:640]
+    base = (500 + (xx + yy) % 4000).astype(np.uint16)
+    expect = []
+    with DumpWriter(path, fps=fps) as w:
+        for i in range(frames):
+            c = np.zeros((480, 640, 3), np.uint8)
+            c[..., 0], c[..., 1], c[..., 2] = i, 100, 200
+            d = base + np.uint16(i)
+            d[:, ::7] = 0
+            w.add(c, d, gap_s=gap_s if i == gap_after else 0.0)
+            expect.append(d)
+    return expect
+
+
+def make_dev(dump, stub, **kw):
+    from drivers.freenect_rgbd import FreenectDepthCamera
+    kw.setdefault("backoff_max_s", 0.4)
+    d = FreenectDepthCamera("rgbd", MonotonicClock(), fakenect=str(dump),
+                            fakenect_preload=str(stub), **kw)
+    d.open()
+    d.start_acquisition()
+    return d
+
+
+def test_frames_arrive_depth_round_trips_end_of_dump_is_a_fault(tmp_path, stub):
+    expect = ramp_dump(tmp_path / "dump", frames=8)
+    d = make_dev(tmp_path / "dump", stub)
+    seen = {}
+    try:
+        assert wait_for(lambda: d.health().ok, 8.0), d.health()
+        ok, msg = d.selftest()
+        assert ok and "streaming registered depth" in msg, msg
+        t_end = time.monotonic() + 3.0
+        while time.monotonic() < t_end and len(seen) < 4:
+            f = d.latest()
+            if f is not None:
+                seen[int(f.color[0, 0, 0])] = f
+            time.sleep(0.01)
+        assert len(seen) >= 4, seen.keys()
+        for i, f in seen.items():
+            assert f.color.shape == (480, 640, 3) and f.color.dtype == np.uint8
+            assert f.color[5, 5].tolist() == [i, 100, 200]          # RGB on the wire -> BGR
+            assert f.depth_m.dtype == np.float32 and f.depth_m.shape == (480, 640)
+            mm = np.rint(f.depth_m / f.calib.depth_unit_m).astype(np.int64)
+            np.testing.assert_array_equal(mm, expect[i])            # exact, in millimetres
+            assert np.all(f.depth_m[:, ::7] == 0)                   # invalid stays 0
+            assert f.depth_m[0, 1] == pytest.approx(0.501 + i * 0.001)
+        # the end of the dump: libfreenect returns an error, the helper ends: FAULT, restart
+        assert wait_for(lambda: d.health().state is Health.FAULT, 4.0), d.health()
+        assert "process_events returned -1" in d.health().reason
+        assert not d.selftest()[0]
+        assert wait_for(lambda: d.counters.get("restarts", 0) >= 1 and d.health().ok, 4.0)
+        assert d.counters["starts"] >= 2
+    finally:
+        d.close()
+        d.close()                                                    # twice is safe
+    assert d.health().state is Health.CLOSED
+    assert d._proc is None
+
+
+def test_silent_device_goes_stale_then_is_restarted(tmp_path, stub):
+    ramp_dump(tmp_path / "dump", frames=6, gap_after=3, gap_s=3.0)
+    d = make_dev(tmp_path / "dump", stub, lost_after_s=0.8)
+    try:
+        assert wait_for(lambda: d.health().ok, 8.0), d.health()
+        # frames 0-3, then fakenect sleeps 3 s inside libfreenect: no frames, no error
+        assert wait_for(lambda: d.health().state is Health.NO_DATA, 3.0), d.health()
+        h = d.health()
+        assert h.age_s <= d.timeout_s + 0.1
+        assert d.latest() is None
+        # the driver's own thread never blocked: it gives up after lost_after_s and restarts
+        assert wait_for(lambda: "no frames for" in (d.health().reason or ""), 3.0)
+        assert wait_for(lambda: d.health().ok, 4.0)                  # replayed from the start
+        assert d.counters["restarts"] >= 1
+    finally:
+        d.close()
+
+
+def test_missing_device_is_a_fault_with_backoff(tmp_path, stub):
+    """A dump folder without INDEX.txt: fakenect exit()s inside the library (as a crash would):
+    only the helper dies; the driver reports it and backs off."""
+    (tmp_path / "empty").mkdir()
+    d = make_dev(tmp_path / "empty", stub)
+    try:
+        assert wait_for(lambda: d.counters.get("restarts", 0) >= 2, 8.0), d.health()
+        h = d.health()
+        assert h.state is Health.FAULT and "stopped (helper exit" in h.reason
+        assert "INDEX.txt" in h.reason                 # fakenect's own message, from stderr
+        assert d.backoff.delay_s > 0.2
+    finally:
+        d.close()
+
+
+# ---------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def greenhouse_dump(tmp_path_factory, stub):
+    out = tmp_path_factory.mktemp("gh") / "dump"
+    info = sim_dump(out, scene="greenhouse", frames=12, fps=10.0)
+    return info
+
+
+def _rgbd_options(info, stub):
+    return {"type": "freenect", "fakenect": info["dump"], "fakenect_preload": str(stub),
+            "backoff_max_s": 0.4, **info["calibration"]}
+
+
+def test_daemon_runs_the_rgbd_pipeline_from_the_kinect(greenhouse_dump, stub):
+    rig = DaemonRig({"rgbd": _rgbd_options(greenhouse_dump, stub)}, pipelines=("rgbd",))
+    dev = rig.daemon.devices["rgbd"]
+    log = []                                  # (cycle ns, state, faults, rgbd frame stamp)
+    rig.daemon.loop.on_cycle.append(lambda r: log.append(
+        (r.stamp_ns, r.output.state.value, list(r.faults),
+         None if r.inputs.rgbd is None else r.inputs.rgbd.stamp_ns)))
+    try:
+        # the pipeline runs on the Kinect's frames: cycles with no fault at all
+        assert wait_for(lambda: len({c[3] for c in log if c[3] and not c[2]}) >= 3, 10.0), \
+            log[-3:]
+        # the end of the dump (12 frames at 10 Hz): STOP within two cycles of the frame that
+        # did not come, naming the device
+        ok = next(i for i, c in enumerate(log) if not c[2])
+        assert wait_for(lambda: any("rgbd" in " ".join(c[2]) for c in log[ok:]), 6.0)
+        first = next(i for i in range(ok, len(log)) if "rgbd" in " ".join(log[i][2]))
+        assert log[first][1] == "STOP"
+        last_frame = max(c[3] for c in log[:first] if c[3])
+        due = last_frame + int(1e9 / 10.0)
+        after_due = [c for c in log if c[0] >= due]
+        assert next(i for i, c in enumerate(after_due) if c[1] == "STOP") + 1 <= 2
+        # replayed from the start after the back-off: the faults clear again
+        assert wait_for(lambda: not rig.cycles[-1][2], 6.0), rig.cycles[-1]
+        assert dev.counters["restarts"] >= 1
+    finally:
+        rig.close()
+
+
+def test_fieldguard_run_with_a_hardware_config(greenhouse_dump, stub, tmp_path):
+    """`fieldguard run --config hw.toml` with the freenect device and the rgbd pipeline."""
+    opts = _rgbd_options(greenhouse_dump, stub)
+    lines = ["[perception]", 'pipelines = ["rgbd"]', "", "[devices.rgbd]"]
+    lines += [f"{k} = {json.dumps(v)}" for k, v in opts.items()]
+    lines += ["", "[devices.link]", 'type = "log"', "", "[status]",
+              f'socket = "{tmp_path}/s.sock"']
+    (tmp_path / "hw.toml").write_text("\n".join(lines) + "\n")
+    exe = ROOT / ".venv/bin/fieldguard"
+    exe = str(exe) if exe.exists() else "fieldguard"
+    r = subprocess.run([exe, "run", "--config", str(tmp_path / "hw.toml"), "--duration", "2.5",
+                        "--print-every", "0.5"],
+                       capture_output=True, text=True, timeout=60, cwd=str(tmp_path))
+    assert r.returncode == 0, r.stderr[-2000:]
+    out = r.stdout.splitlines()
+    final = json.loads(out[-1])
+    assert final["cycles"] >= 20
+    states = [x for x in out if x.startswith("[")]
+    # booted in STOP while the helper started; then the gate decided on what the rgbd pipeline
+    # found in the Kinect's frames (the greenhouse's bushes are close: obstacle or clear)
+    assert "rgbd: no data yet" in states[0] or "booting" in states[0], states[0]
+    assert any("obstacle" in x or "| clear" in x.lower() for x in states), states
+    assert "fieldguard up: mode=hardware devices=rgbd,link pipelines=rgbd" in r.stderr
+    # `fieldguard selftest --config`: opens the devices itself and reports the Kinect
+    r = subprocess.run([exe, "selftest", "--config", str(tmp_path / "hw.toml"), "--seconds",
+                        "1.2"], capture_output=True, text=True, timeout=60, cwd=str(tmp_path))
+    assert r.returncode == 0, r.stdout + r.stderr[-2000:]
+    assert "PASS  rgbd" in r.stdout and "streaming registered depth + colour" in r.stdout
