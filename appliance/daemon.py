@@ -94,6 +94,7 @@ class Daemon:
         self.recorder: Recorder | None = None
         self.notifier = notifier if notifier is not None else Notifier()
         self._ready = False
+        self.day_night = None
         self._status_state = None
         self._status_t = 0.0
 
@@ -115,6 +116,11 @@ class Daemon:
         self.loop = ApplianceLoop(self.cfg, self.clock, self.devices, self.pipelines,
                                   kinds={d.name: d.kind for d in self.cfg.devices})
         self.loop.on_cycle.append(self._notify_cycle)
+        for dev in self.devices.values():    # a strobe controller switching by scene brightness
+            make = getattr(dev, "day_night_switch", None)
+            self.day_night = self.day_night or (make(self.devices) if make else None)
+        if self.day_night is not None:
+            self.loop.on_cycle.append(self.day_night)
         if self.mode == "replay":
             self.loop.on_cycle.append(self._end_of_replay)
         sc = self.cfg.status
@@ -162,6 +168,8 @@ class Daemon:
             doc["sim"] = {"scene": self.cfg.sim.scene, **hub.field.stats()}
         if self.recorder is not None:
             doc["incidents"] = list(self.recorder.incidents)[-5:]
+        if self.day_night is not None:
+            doc["day_night"] = self.day_night.status()
         return doc
 
     # -- requests on the status socket ---------------------------------------------------------

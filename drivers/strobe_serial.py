@@ -117,14 +117,23 @@ class StrobeSerialTrigger(StrobeTrigger):
 
     options_schema = {"port": str, "baudrate": int, "rate_hz": float, "strobe": bool,
                       "status_period_s": float, "ack_timeout_s": float, "fault_hold_s": float,
-                      "backoff_max_s": float}
+                      "backoff_max_s": float, "day_night": bool, "night_below": float,
+                      "day_above": float, "probe_s": float}
     default_timeout_s = 0.35
 
     def __init__(self, name, clock, port: str = "/dev/fieldguard-strobe", baudrate: int = 115200,
                  timeout_s: float = default_timeout_s, rate_hz: float = 10.0,
                  strobe: bool = False, status_period_s: float = 0.1, ack_timeout_s: float = 0.5,
-                 fault_hold_s: float = 0.3, backoff_max_s: float = 2.0):
+                 fault_hold_s: float = 0.3, backoff_max_s: float = 2.0,
+                 day_night: bool = True, night_below: float = 35.0, day_above: float = 60.0,
+                 probe_s: float = 10.0):
         super().__init__(name, clock, timeout_s)
+        if night_below >= day_above:
+            raise ValueError("night_below must be lower than day_above (the hysteresis)")
+        # day/night switching by the daemon (DayNightSwitch), when a stereo camera is configured
+        self.day_night = bool(day_night)
+        self.night_below, self.day_above, self.probe_s = (float(night_below), float(day_above),
+                                                          float(probe_s))
         self.port, self.baudrate = port, int(baudrate)
         self.want_rate_hz = float(rate_hz)
         self.want_strobe = bool(strobe)
@@ -152,7 +161,9 @@ class StrobeSerialTrigger(StrobeTrigger):
                    status_period_s=o.get("status_period_s", 0.1),
                    ack_timeout_s=o.get("ack_timeout_s", 0.5),
                    fault_hold_s=o.get("fault_hold_s", 0.3),
-                   backoff_max_s=o.get("backoff_max_s", 2.0))
+                   backoff_max_s=o.get("backoff_max_s", 2.0),
+                   day_night=o.get("day_night", True), night_below=o.get("night_below", 35.0),
+                   day_above=o.get("day_above", 60.0), probe_s=o.get("probe_s", 10.0))
 
     # ---- the interface (callable from any thread, never blocks) ----------------------------
     def set_rate(self, rate_hz: float) -> None:
@@ -335,6 +346,16 @@ class StrobeSerialTrigger(StrobeTrigger):
     def _stamp_of(self, sample) -> int:
         return sample["stamp_ns"]
 
+    def day_night_switch(self, devices: dict) -> "DayNightSwitch | None":
+        """The daemon's day/night switch for this controller and the first stereo camera that
+        labels its frames (None if ``day_night`` is off or there is no such camera)."""
+        if not self.day_night:
+            return None
+        cams = [d for d in devices.values() if d.kind == "stereo" and hasattr(d, "illumination")]
+        if not cams:
+            return None
+        return DayNightSwitch(cams[0], self, self.night_below, self.day_above, self.probe_s)
+
     def selftest(self) -> tuple[bool, str]:
         h = self.health()
         st = self.last_status
@@ -342,3 +363,92 @@ class StrobeSerialTrigger(StrobeTrigger):
             return True, (f"{self.port}: firing at {st['rate_hz']:g} Hz, strobe "
                           f"{'on' if st['strobe'] else 'off'}, {st['pulses']} pulses")
         return False, f"{self.port}: {h.reason or h.state.value}"
+
+
+# ---------------------------------------------------------------------------------------------
+class DayNightSwitch:
+    """Day/night switching for a stereo camera lit by this controller's strobe. The daemon calls
+    it after every loop cycle with the cycle's result (``loop.on_cycle``).
+
+    * Labels: the camera's ``illumination`` (stamped on each frame it publishes, so the pipeline
+      knows) follows the strobe state the controller *confirms* in its STATUS, not the command.
+    * Day: each cycle, the ambient brightness of the cycle's left image (:func:`scene_brightness`:
+      every 8th pixel, ~20k pixels at 1280x1024) goes through :func:`next_illumination`; below
+      ``night_below`` the strobe is switched on.
+    * Night: a lit frame says nothing about the ambient light, so every ``probe_s`` the strobe is
+      switched off until a frame taken without it has arrived (stamped ``settle_s`` after the
+      controller confirmed the strobe off; about 2-3 frames, labelled "day"), the ambient is
+      measured on it, and the strobe goes back on unless the ambient is
+      above ``day_above``. A probe that sees no unlit frame within ``probe_timeout_s`` puts the
+      strobe back on (the camera or controller is in trouble; their health stops the gate).
+    """
+
+    def __init__(self, camera, trigger: "StrobeSerialTrigger", night_below: float = 35.0,
+                 day_above: float = 60.0, probe_s: float = 10.0, probe_timeout_s: float = 1.0,
+                 settle_s: float = 0.05):
+        if night_below >= day_above:
+            raise ValueError("night_below must be lower than day_above (the hysteresis)")
+        self.camera, self.trigger = camera, trigger
+        self.night_below, self.day_above = float(night_below), float(day_above)
+        self.probe_ns, self.probe_timeout_ns = int(probe_s * 1e9), int(probe_timeout_s * 1e9)
+        self.settle_ns = int(settle_s * 1e9)
+        self._off_since: int | None = None      # when the controller confirmed the strobe off
+        self.mode = NIGHT if getattr(trigger, "want_strobe", False) else DAY
+        self.ambient: float | None = None
+        self.switches = 0
+        self.probes = 0
+        self._probe_since: int | None = None
+        self._next_probe: int | None = None
+
+    def status(self) -> dict:
+        return {"mode": self.mode, "ambient": None if self.ambient is None else
+                round(self.ambient, 1), "switches": self.switches, "probes": self.probes}
+
+    def _measure(self, frame) -> float:
+        self.ambient = scene_brightness(frame.left)
+        return self.ambient
+
+    def __call__(self, res) -> None:
+        st = self.trigger.newest()
+        if st is not None:                      # label = what the controller says it does
+            self.camera.illumination = NIGHT if st.get("strobe") else DAY
+            if st.get("strobe"):
+                self._off_since = None
+            elif self._off_since is None:
+                self._off_since = st["stamp_ns"]
+        frame = res.inputs.stereo if res.inputs is not None else None
+        now = res.stamp_ns
+        if self.mode == DAY:
+            if frame is None or frame.illumination != DAY:
+                return
+            if next_illumination(DAY, self._measure(frame), self.night_below,
+                                 self.day_above) == NIGHT:
+                self.mode = NIGHT
+                self.switches += 1
+                self.trigger.set_strobe(True)
+                self._next_probe = now + self.probe_ns
+            return
+        # night
+        if self._probe_since is None:
+            if self._next_probe is None:
+                self._next_probe = now + self.probe_ns
+            if now >= self._next_probe:
+                self._probe_since = now
+                self.probes += 1
+                self.trigger.set_strobe(False)
+            return
+        unlit = (frame is not None and frame.illumination == DAY and self._off_since is not None
+                 and frame.stamp_ns > max(self._probe_since, self._off_since + self.settle_ns))
+        if unlit:
+            self._probe_since = None
+            if next_illumination(NIGHT, self._measure(frame), self.night_below,
+                                 self.day_above) == DAY:
+                self.mode = DAY                  # the strobe is already off
+                self.switches += 1
+                return
+            self.trigger.set_strobe(True)
+            self._next_probe = now + self.probe_ns
+        elif now - self._probe_since > self.probe_timeout_ns:
+            self._probe_since = None
+            self.trigger.set_strobe(True)
+            self._next_probe = now + self.probe_ns

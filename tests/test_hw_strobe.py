@@ -195,3 +195,105 @@ def test_daemon_stops_when_the_trigger_stops_firing(tmp_path):
         emu.stop()
         os.close(fd)
         pair.kill()
+
+
+# ---------------------------------------------------------------------------------------------
+# day/night switching in the daemon: a stereo camera lit by the emulated controller's strobe
+from hal.devices import StereoCamera                                    # noqa: E402
+from hal.types import Mount, PinholeCalibration, StereoCalibration, StereoFrame  # noqa: E402
+
+LIT_SCENE = {"emu": None, "ambient": 120.0}
+
+
+class LitStereoCamera(StereoCamera):
+    """A 10 Hz camera (own thread, like the hardware drivers) looking at a scene of brightness
+    ``LIT_SCENE["ambient"]``, plus 120 when the emulated controller's strobe is really on (its
+    state as set over the pty by the driver). Labels frames with ``illumination`` as the
+    Aravis driver does."""
+
+    options_schema: dict = {}
+
+    def __init__(self, name, clock, timeout_s=0.25):
+        super().__init__(name, clock, timeout_s)
+        self.illumination = "day"
+        self._seq = 0
+        self._cal = StereoCalibration(PinholeCalibration(80, 64, 70.0, 70.0, 40.0, 32.0), 0.75,
+                                      Mount(1.2, 0.0, 1.55, 0.0, 15.0, 0.0))
+
+    @classmethod
+    def from_config(cls, cfg, clock, shared):
+        return cls(cfg.name, clock, cfg.timeout_s)
+
+    @property
+    def calibration(self):
+        return self._cal
+
+    def _acquire_once(self) -> None:
+        emu = LIT_SCENE["emu"]
+        lit = 120.0 if emu is not None and emu.strobe else 0.0
+        level = int(min(255, LIT_SCENE["ambient"] + lit))
+        img = np.full((64, 80, 3), level, np.uint8)
+        self._seq += 1
+        self._publish(StereoFrame(self.clock.now_ns(), self._seq, img, img, self._cal,
+                                  self.illumination))
+        self._stop_evt.wait(0.1)
+
+
+def test_daemon_switches_the_strobe_when_the_scene_goes_dark(tmp_path):
+    from drivers.registry import register
+    register("stereo", "test-lit", f"{__name__}:LitStereoCamera")   # this very module
+    pair = PtyPair(tmp_path)
+    fd = os.open(pair.b, os.O_RDWR | os.O_NOCTTY)
+    emu = StrobeControllerEmulator(fd).start()
+    LIT_SCENE.update(emu=emu, ambient=120.0)
+    rig = None
+    try:
+        rig = DaemonRig({"stereo": {"type": "test-lit"},
+                         "trigger": {"type": "serial", "port": pair.a, "probe_s": 0.6}},
+                        pipelines=())
+        seen = []          # (illumination label the pipeline got, the frame's real brightness)
+        rig.daemon.loop.on_cycle.append(lambda r: r.inputs.stereo is not None and seen.append(
+            (r.inputs.stereo.illumination, float(r.inputs.stereo.left.mean()))))
+        dn = rig.daemon.day_night
+        assert dn is not None
+        assert wait_for(lambda: rig.state == "CLEAR", 5.0), rig.cycles[-3:]
+        time.sleep(0.5)
+        assert dn.mode == DAY and not emu.strobe and dn.ambient == pytest.approx(120, abs=1)
+        # dusk, but above night_below (35): hysteresis keeps it day
+        LIT_SCENE["ambient"] = 45.0
+        time.sleep(0.6)
+        assert dn.mode == DAY and not emu.strobe
+        # dark: strobe on within a few cycles, frames labelled night-strobe (and lit)
+        LIT_SCENE["ambient"] = 20.0
+        assert wait_for(lambda: emu.strobe and dn.mode == NIGHT, 2.0), dn.status()
+        assert wait_for(lambda: seen and seen[-1][0] == NIGHT, 2.0), seen[-5:]
+        # at night it probes the ambient on unlit frames and stays night while it is dark
+        n0 = len(seen)
+        assert wait_for(lambda: dn.probes >= 2, 4.0), dn.status()
+        assert dn.mode == NIGHT and dn.ambient == pytest.approx(20, abs=1)
+        assert wait_for(lambda: emu.strobe, 2.0)
+        labels = seen[n0:]
+        # every frame the pipeline got says truthfully whether it was lit (one frame may be in
+        # flight across a switch)
+        wrong = [x for x in labels if (x[0] == NIGHT) != (x[1] > 100)]
+        assert len(wrong) <= 2 * dn.probes, labels
+        assert any(x[0] == DAY for x in labels) and any(x[0] == NIGHT for x in labels)
+        # dawn at 45: between the thresholds, stays night
+        LIT_SCENE["ambient"] = 45.0
+        p = dn.probes
+        assert wait_for(lambda: dn.probes >= p + 1 and dn._probe_since is None, 3.0)
+        assert dn.mode == NIGHT
+        # bright morning: the next probe sees it and the strobe stays off
+        LIT_SCENE["ambient"] = 90.0
+        assert wait_for(lambda: dn.mode == DAY, 3.0), dn.status()
+        assert wait_for(lambda: not emu.strobe and seen[-1][0] == DAY, 2.0)
+        assert dn.switches == 2
+        assert rig.daemon.status()["day_night"]["mode"] == DAY
+        assert all(c[1] == "CLEAR" for c in rig.cycles[-5:])     # switching is no fault
+    finally:
+        if rig:
+            rig.close()
+        LIT_SCENE["emu"] = None
+        emu.stop()
+        os.close(fd)
+        pair.kill()
