@@ -34,11 +34,9 @@ from appliance.config import _f
 from .base import Detections, Pipeline, SensorInputs
 from .rgbd_classes import RgbdClassModel
 from .rgbd_colour import COLOUR_SPACES, ColourClassifier, colour_features
-from .rgbd_decision import not_traversable, obstacle_groups
+from .rgbd_decision import NOT_CLASSIFIED, Rule, decide, not_traversable, obstacle_groups
 from .rgbd_slope import height_map, slope_map, suspected_map
 from .rgbd_texture import classify_histograms, lbp_codes, to_grey, window_histograms, window_index
-
-NOT_CLASSIFIED = -2          # class map value of pixels that were not suspected
 
 
 @dataclass(frozen=True)
@@ -62,18 +60,38 @@ class RgbdPipelineConfig:
     texture_scope: str = _f("suspected", choices=("suspected", "traversable-colour"),
                             doc="pixels texture may turn into obstacles: every suspected one "
                                 "(paper) or only those colour called traversable")
+    texture_undefined: bool = _f(True, doc="an undefined texture window is obstacle evidence "
+                                           "(paper: True)")
     texture_window_px: int = _f(20, lo=3, hi=100)
     texture_threshold: float = _f(0.5, lo=0.0, hi=2.0, doc="chi-square distance for a class")
     min_pixels: int = _f(30, lo=1, hi=100000, doc="smallest obstacle group")
+    open_px: int = _f(0, lo=0, hi=15, doc="opening of the obstacle candidates before grouping "
+                                          "(0 = none, the paper)")
+    bottom_grounded: bool = _f(False, doc="a group cut off by the image bottom stands on the "
+                                          "ground the camera cannot see")
+    texture_contact_px: int = _f(0, lo=0, hi=100, doc="texture groups may touch the surface "
+                                                      "this far below (0 = contact_px)")
+    min_height_m: float = _f(0.0, lo=0.0, hi=3.0, doc="a group must rise this high above the "
+                                                      "ground plane (0 = any, the paper)")
     contact_px: int = _f(1, lo=1, hi=50, doc="surface within this many rows below a group")
     ground_max_height_m: float = _f(0.0, lo=0.0, hi=5.0,
                                     doc="only surface lower than this counts as the ground a "
                                         "group must stand on (0 = any surface, the paper)")
     traversable: tuple = _f(("bush", "pepper"), doc="class names the vehicle may drive through")
+    ground_classes: tuple = _f((), doc="class names that are traversable below "
+                                       "ground_max_height_m (the path itself; paper: none)")
     occlusion_filter: bool = _f(True, doc="do not project the far side of a depth edge that the "
                                           "slope pair and the dilation add to a group")
     holes: bool = _f(False, doc="depth holes standing on the ground are obstacles (not in paper)")
     hole_min_pixels: int = _f(150, lo=1, hi=100000)
+    hole_min_width_px: int = _f(5, lo=1, hi=200, doc="narrower holes are depth shadows at "
+                                                     "occlusion edges, not shiny objects")
+    hole_max_range_m: float = _f(0.0, lo=0.0, hi=50.0,
+                                 doc="a depth hole must stand on surface nearer than this (0 = "
+                                     "max_range_m); at the range limit a hole is the far view")
+    hole_ignore_classes: tuple = _f((), doc="colour classes a depth hole may have without being "
+                                            "an obstacle besides the traversable ones (the "
+                                            "greenhouse cover: beyond the sensor's range)")
     use_vehicle_pitch: bool = _f(False, doc="add the vehicle's pitch to the mount pitch")
 
 
@@ -113,6 +131,17 @@ class RgbdPipeline(Pipeline):
         self.model = model
         self.colour = ColourClassifier(model.mixtures(o.colour_space), o.colour_threshold)
         self.traversable_idx = model.index(o.traversable)
+        self.hole_ok_idx = sorted(set(self.traversable_idx) | set(model.index(o.hole_ignore_classes)))
+        self.rule = Rule(tuple(self.traversable_idx), len(model.classes),
+                         ground_classes=tuple(model.index(o.ground_classes)),
+                         ground_max_height_m=o.ground_max_height_m,
+                         texture_role="traversable-colour"
+                         if o.texture_scope == "traversable-colour" else "or",
+                         texture_undefined=o.texture_undefined,
+                         min_pixels=o.min_pixels, contact_px=o.contact_px, open_px=o.open_px,
+                         bottom_rows=(o.slope_step_px + o.dilate_px // 2 + o.contact_px)
+                         if o.bottom_grounded else 0,
+                         texture_contact_px=o.texture_contact_px, min_height_m=o.min_height_m)
 
     # ------------------------------------------------------------------------------------------
     def process(self, inputs: SensorInputs) -> Detections:
@@ -143,28 +172,26 @@ class RgbdPipeline(Pipeline):
         slope = slope_map(depth_s, cam.fy, cam.cy, pitch, lo, hi, o.slope_step_px)
         sus, surface = suspected_map(slope, o.slope_threshold_deg, o.dilate_px,
                                      o.morphology == "close")
+        height = None
+        if o.min_height_m > 0:
+            height = height_map(depth_s, cam.fy, cam.cy, pitch, mount.z_m)
         if o.ground_max_height_m > 0:
             # our addition: bush tops are level too, but an obstacle stands on the ground
-            surface &= height_map(depth_s, cam.fy, cam.cy, pitch, mount.z_m) < \
-                np.float32(o.ground_max_height_m)
+            if height is None:
+                height = height_map(depth_s, cam.fy, cam.cy, pitch, mount.z_m)
+            surface &= height < np.float32(o.ground_max_height_m)
 
         # 2. colour classes of the suspected pixels
         cmap = np.full(sus.shape, NOT_CLASSIFIED, np.int16)
         cmap[sus] = self.colour.classify(colour_features(color[sus], o.colour_space))
-        cand = sus & not_traversable(cmap, self.traversable_idx)
-        col_obs, n_col = obstacle_groups(cand, surface, o.min_pixels, o.contact_px)
+        d = decide(sus, surface, cmap, None, self.rule, height)
 
         # 3. texture
-        tmap = tex_obs = None
-        n_tex = 0
-        if o.texture == "always" or (o.texture == "after-colour" and n_col > 0):
+        tmap = None
+        if o.texture == "always" or (o.texture == "after-colour" and d.n_colour > 0):
             tmap = self._texture_map(color, sus)
-            cand_t = sus & not_traversable(tmap, self.traversable_idx)
-            if o.texture_scope == "traversable-colour":
-                # texture is there for obstacles coloured like a class: let it judge only the
-                # pixels colour let through
-                cand_t &= ~not_traversable(cmap, self.traversable_idx)
-            tex_obs, n_tex = obstacle_groups(cand_t, surface, o.min_pixels, o.contact_px)
+            d = decide(sus, surface, cmap, tmap, self.rule, height)
+        col_obs, tex_obs, n_col, n_tex = d.colour, d.texture, d.n_colour, d.n_texture
 
         obs = col_obs | tex_obs if tex_obs is not None else col_obs.copy()
         proj = obs
@@ -229,12 +256,16 @@ class RgbdPipeline(Pipeline):
         mount (flat ground assumed), clipped to the valid range."""
         o: RgbdPipelineConfig = self.options
         hole = depth <= 0
+        if o.hole_max_range_m > 0:
+            # ground at the range limit under a hole: that is the view beyond the range (the
+            # far end of the path, the cover), not a shiny obstacle standing in range
+            surface = surface & (depth < np.float32(o.hole_max_range_m))
         cmap = np.full(hole.shape, NOT_CLASSIFIED, np.int16)
         cmap[hole] = self.colour.classify(colour_features(color[hole], o.colour_space))
-        cand = hole & not_traversable(cmap, self.traversable_idx)
+        cand = hole & not_traversable(cmap, self.hole_ok_idx)
         # holes are thin at depth edges: open the mask so only solid regions remain
         cand = cv2.morphologyEx(cand.view(np.uint8), cv2.MORPH_OPEN,
-                                np.ones((5, 5), np.uint8)) > 0
+                                np.ones((5, max(5, o.hole_min_width_px)), np.uint8)) > 0
         mask, n = obstacle_groups(cand, surface, o.hole_min_pixels, max(o.contact_px, 3))
         if n == 0:
             return mask, 0, np.zeros((0, 2), np.float32)
