@@ -50,10 +50,18 @@ ROOT = Path(__file__).resolve().parents[1]
 WIDTH, HEIGHT = 640, 480
 DEPTH_BYTES, COLOUR_BYTES = WIDTH * HEIGHT * 2, WIDTH * HEIGHT * 3
 
-# the pipe protocol: header, then `size` payload bytes
+# The pipe carries small messages: header, then `size` payload bytes. The frames themselves go
+# through a shared-memory ring of SLOTS slots (a memfd the driver creates and the helper
+# inherits): [seq at start u64][seq at end u64][depth uint16 640x480][colour RGB 640x480]; a
+# PAIR message names the slot and its sequence number, and the reader checks both copies of the
+# number after copying the slot out (a slot overwritten meanwhile is dropped and counted).
 MAGIC = b"FGK1"
 HEADER = struct.Struct("<4sBxxxIIQd")     # magic, kind, depth ts, video ts, size, mono time s
+PAIR_INFO = struct.Struct("<IIIQ")       # slot, unmatched, throttled, seq
 HELLO, PAIR, ERROR = 1, 2, 3
+SLOTS = 4
+SLOT_HEAD = 16
+SLOT_BYTES = SLOT_HEAD + DEPTH_BYTES + COLOUR_BYTES
 
 
 # ---------------------------------------------------------------------------------------------
@@ -65,7 +73,9 @@ class FreenectDepthCamera(DepthCamera):
                       "max_fps": float, "pair_tolerance_ms": float, "lost_after_s": float,
                       "backoff_max_s": float, "fakenect": str, "fakenect_preload": str,
                       **MOUNT_SCHEMA}
-    default_timeout_s = 0.25
+    # one period at max_fps 15 (67 ms) + 60 ms late tolerance: stale 60 ms after the next pair
+    # was due, so the gate stops within two 10 Hz cycles (docs/hardware.md)
+    default_timeout_s = 0.13
     DEFAULT_MOUNT = Mount(x_m=1.0, z_m=0.9, pitch_deg=10.0)
     # Kinect v1 colour camera (registered depth uses the colour camera's geometry)
     DEFAULT_INTRINSICS = (525.0, 525.0, 319.5, 239.5)
@@ -94,6 +104,8 @@ class FreenectDepthCamera(DepthCamera):
         self.fakenect_preload = fakenect_preload
         self.python = python or sys.executable
         self._proc: subprocess.Popen | None = None
+        self._shm = None
+        self._shm_fd = -1
         self._buf = bytearray()
         self._err = b""
         self._errmsg = ""
@@ -139,13 +151,26 @@ class FreenectDepthCamera(DepthCamera):
                 raise DeviceOperationError(str(exc)) from None
         return env
 
+    def _ring(self):
+        if self._shm is None:
+            import mmap
+            fd = os.memfd_create("fieldguard-kinect", 0)
+            os.ftruncate(fd, SLOTS * SLOT_BYTES)
+            self._shm_fd, self._shm = fd, mmap.mmap(fd, SLOTS * SLOT_BYTES)
+        return self._shm_fd
+
     def _spawn(self) -> None:
+        try:
+            fd = self._ring()
+        except OSError as exc:
+            raise DeviceOperationError(f"cannot make the frame ring: {exc}") from None
         cmd = [self.python, "-m", "drivers.freenect_rgbd", "--child", "--index", str(self.index),
-               "--max-fps", str(self.max_fps), "--pair-tolerance-ms", str(self.pair_tolerance_ms)]
+               "--max-fps", str(self.max_fps), "--pair-tolerance-ms", str(self.pair_tolerance_ms),
+               "--ring-fd", str(fd)]
         try:
             self._proc = subprocess.Popen(cmd, cwd=str(ROOT), env=self._env(),
                                           stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                                          stderr=subprocess.PIPE, bufsize=0)
+                                          stderr=subprocess.PIPE, bufsize=0, pass_fds=(fd,))
         except OSError as exc:
             raise DeviceOperationError(f"cannot start the libfreenect helper: {exc}") from None
         for f in (self._proc.stdout, self._proc.stderr):
@@ -186,6 +211,10 @@ class FreenectDepthCamera(DepthCamera):
 
     def _close(self) -> None:
         self._kill()
+        shm, self._shm = self._shm, None
+        if shm is not None:
+            shm.close()
+            os.close(self._shm_fd)
 
     def _err_tail(self) -> str:
         lines = [x.strip() for x in self._err.decode("utf-8", "replace").splitlines()
@@ -244,12 +273,12 @@ class FreenectDepthCamera(DepthCamera):
     def _parse(self) -> None:
         while len(self._buf) >= HEADER.size:
             magic, kind, dts, vts, size, mono = HEADER.unpack_from(self._buf)
-            if magic != MAGIC or kind not in (HELLO, PAIR, ERROR) or size > 4 * COLOUR_BYTES:
+            if magic != MAGIC or kind not in (HELLO, PAIR, ERROR) or size > 4096:
                 self._count("bad_messages")
                 raise DeviceOperationError(f"{self.source}: garbled data from the helper")
             if len(self._buf) < HEADER.size + size:
                 return
-            payload = bytes(self._buf[HEADER.size:HEADER.size + size])
+            payload = self._buf[HEADER.size:HEADER.size + size]
             del self._buf[:HEADER.size + size]
             if kind == HELLO:
                 self.hello = payload.decode("utf-8", "replace")
@@ -259,13 +288,26 @@ class FreenectDepthCamera(DepthCamera):
                 self._on_pair(payload, dts, vts, mono)
 
     def _on_pair(self, payload: bytes, dts: int, vts: int, mono: float) -> None:
-        if len(payload) < DEPTH_BYTES + COLOUR_BYTES + 8:
-            raise DeviceOperationError(f"{self.source}: short frame from the helper")
-        unmatched, throttled = struct.unpack_from("<II", payload, 0)
-        depth = np.frombuffer(payload, np.uint16, WIDTH * HEIGHT, 8).reshape(HEIGHT, WIDTH)
-        rgb = np.frombuffer(payload, np.uint8, COLOUR_BYTES, 8 + DEPTH_BYTES)
+        if len(payload) != PAIR_INFO.size:
+            raise DeviceOperationError(f"{self.source}: bad frame message from the helper")
+        k, unmatched, throttled, seq = PAIR_INFO.unpack(payload)
+        if k >= SLOTS:
+            raise DeviceOperationError(f"{self.source}: bad frame slot {k} from the helper")
+        base = k * SLOT_BYTES
+        ring = self._shm
+        head = struct.Struct("<QQ")
+        if head.unpack_from(ring, base) != (seq, seq):
+            self._count("overwritten")
+            return
+        depth = np.frombuffer(ring, np.uint16, WIDTH * HEIGHT, base + SLOT_HEAD)
+        rgb = np.frombuffer(ring, np.uint8, COLOUR_BYTES, base + SLOT_HEAD + DEPTH_BYTES)
+        depth_m = depth.reshape(HEIGHT, WIDTH).astype(np.float32)
         bgr = np.ascontiguousarray(rgb.reshape(HEIGHT, WIDTH, 3)[..., ::-1])
-        depth_m = depth.astype(np.float32) * np.float32(self.calib.depth_unit_m)
+        del depth, rgb                           # no views into the ring may outlive this
+        if head.unpack_from(ring, base) != (seq, seq):   # overwritten while we copied
+            self._count("overwritten")
+            return
+        depth_m *= np.float32(self.calib.depth_unit_m)
         self._last_frame = time.monotonic()
         age_ns = max(0, int((self._last_frame - mono) * 1e9))
         stamp = self.clock.now_ns() - age_ns
@@ -301,7 +343,8 @@ def _read(fd: int) -> bytes | None:
 
 # ---------------------------------------------------------------------------------------------
 # the helper process: the binding's async API, one pair per depth frame, written to the pipe
-def _child(index: int, max_fps: float, pair_tolerance_ms: float) -> int:
+def _child(index: int, max_fps: float, pair_tolerance_ms: float, ring_fd: int) -> int:
+    import mmap
     out = os.fdopen(os.dup(1), "wb", buffering=0)
     os.dup2(2, 1)            # the C library prints to stdout (fakenect does): keep the pipe clean
     try:                     # die with the daemon even when blocked in the library
@@ -309,6 +352,8 @@ def _child(index: int, max_fps: float, pair_tolerance_ms: float) -> int:
         ctypes.CDLL(None).prctl(1, signal.SIGTERM)          # PR_SET_PDEATHSIG
     except Exception:
         pass
+    ring = mmap.mmap(ring_fd, SLOTS * SLOT_BYTES)
+    head = struct.Struct("<QQ")
 
     def send(kind, payload=b"", dts=0, vts=0, mono=0.0):
         out.write(HEADER.pack(MAGIC, kind, dts & 0xFFFFFFFF, vts & 0xFFFFFFFF, len(payload),
@@ -340,30 +385,48 @@ def _child(index: int, max_fps: float, pair_tolerance_ms: float) -> int:
         return fail("the Kinect refused registered depth mode", 6)
     if freenect.set_video_mode(dev, freenect.RESOLUTION_MEDIUM, freenect.VIDEO_RGB) < 0:
         return fail("the Kinect refused RGB video mode", 6)
-    state = {"video": None, "unmatched": 0, "throttled": 0, "last_sent": 0.0}
+    # the binding holds the GIL inside process_events, so no helper thread could write while
+    # libfreenect waits: everything happens in the callbacks, and nothing in them blocks (one
+    # memcpy per image into the ring, a 56-byte message on the pipe)
+    state = {"video": None, "unmatched": 0, "throttled": 0, "last_sent": 0.0, "seq": 0}
     period = 1.0 / max_fps
     tol = pair_tolerance_ms / 1e3
 
+    def slot_base():
+        return (state["seq"] % SLOTS) * SLOT_BYTES
+
     def video_cb(_dev, data, ts):
-        state["video"] = (time.monotonic(), ts, np.array(data, np.uint8, copy=True))
+        # straight into the slot the next pair will use (marked invalid while it is written)
+        c = np.asarray(data, np.uint8)
+        if c.shape != (HEIGHT, WIDTH, 3):
+            return
+        base = slot_base()
+        head.pack_into(ring, base, 0, 0)
+        ring[base + SLOT_HEAD + DEPTH_BYTES:base + SLOT_BYTES] = np.ascontiguousarray(c).data
+        state["video"] = (time.monotonic(), ts)
 
     def depth_cb(_dev, data, ts):
         now = time.monotonic()
+        if now - state["last_sent"] < period * 0.9:
+            state["throttled"] += 1
+            return
         v = state["video"]
         if v is None or abs(now - v[0]) > tol:
             state["unmatched"] += 1
             return
-        if now - state["last_sent"] < period * 0.9:
-            state["throttled"] += 1
-            return
-        d = np.ascontiguousarray(data, np.uint16)
-        c = np.ascontiguousarray(v[2], np.uint8)
-        if d.shape != (HEIGHT, WIDTH) or c.shape != (HEIGHT, WIDTH, 3):
+        d = np.asarray(data, np.uint16)
+        if d.shape != (HEIGHT, WIDTH):
             state["unmatched"] += 1
             return
         state["last_sent"] = now
-        send(PAIR, struct.pack("<II", state["unmatched"], state["throttled"]) + d.tobytes()
-             + c.tobytes(), ts, v[1], now)
+        base = slot_base()
+        ring[base + SLOT_HEAD:base + SLOT_HEAD + DEPTH_BYTES] = np.ascontiguousarray(d).data
+        state["seq"] += 1
+        seq = state["seq"]
+        head.pack_into(ring, base, seq, seq)
+        state["video"] = None                 # its slot now holds this pair
+        send(PAIR, PAIR_INFO.pack(base // SLOT_BYTES, state["unmatched"], state["throttled"],
+                                  seq), ts, v[1], now)
 
     freenect.set_depth_callback(dev, depth_cb)
     freenect.set_video_callback(dev, video_cb)
@@ -394,10 +457,11 @@ def main(argv=None) -> int:
     ap.add_argument("--index", type=int, default=0)
     ap.add_argument("--max-fps", type=float, default=15.0)
     ap.add_argument("--pair-tolerance-ms", type=float, default=40.0)
+    ap.add_argument("--ring-fd", type=int, required=True, help="the frame ring (a memfd)")
     a = ap.parse_args(argv)
     if not a.child:
         ap.error("this module is the driver's helper; run it with --child (the driver does)")
-    return _child(a.index, a.max_fps, a.pair_tolerance_ms)
+    return _child(a.index, a.max_fps, a.pair_tolerance_ms, a.ring_fd)
 
 
 if __name__ == "__main__":
