@@ -229,7 +229,10 @@ class AravisStereoCamera(StereoCamera):
                       "pair_tolerance_ms": float, "pair_by": str, "packet_size": int,
                       "buffers": int, "lost_after_s": float, "backoff_max_s": float,
                       **MOUNT_SCHEMA}
-    default_timeout_s = 0.25
+    # one trigger period at 10 Hz + 60 ms late tolerance: a silent camera is stale 60 ms after
+    # its next pair was due, so the gate stops within two 10 Hz cycles (docs/hardware.md);
+    # raise it with a lower trigger rate
+    default_timeout_s = 0.16
     DEFAULT_MOUNT = Mount(x_m=1.2, z_m=1.55, pitch_deg=15.0)
 
     def __init__(self, name, clock, left: str, right: str, calibration: str,

@@ -255,7 +255,9 @@ class SickLms1xxLaser(SafetyLaser):
                       "connect_timeout_s": float, "backoff_max_s": float, "rssi": bool,
                       "fault_hold_s": float,
                       **MOUNT_SCHEMA}
-    default_timeout_s = 0.15   # an LMS1xx sends 25 or 50 scans/s: 0.15 s is 3-7 missed scans
+    # one scan period (25 Hz: 40 ms) + 60 ms late tolerance: a silent laser is stale 60 ms after
+    # its next scan was due, so the gate stops within two 10 Hz cycles (docs/hardware.md)
+    default_timeout_s = 0.1
     DEFAULT_MOUNT = Mount(x_m=1.3, z_m=0.7)
 
     def __init__(self, name, clock, host: str = "192.168.0.1", port: int = DEFAULT_PORT,

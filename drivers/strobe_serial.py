@@ -119,7 +119,9 @@ class StrobeSerialTrigger(StrobeTrigger):
                       "status_period_s": float, "ack_timeout_s": float, "fault_hold_s": float,
                       "backoff_max_s": float, "day_night": bool, "night_below": float,
                       "day_above": float, "probe_s": float}
-    default_timeout_s = 0.35
+    # one STATUS period (0.1 s) + 60 ms late tolerance: a silent controller is stale 60 ms after
+    # its next answer was due, so the gate stops within two 10 Hz cycles (docs/hardware.md)
+    default_timeout_s = 0.16
 
     def __init__(self, name, clock, port: str = "/dev/fieldguard-strobe", baudrate: int = 115200,
                  timeout_s: float = default_timeout_s, rate_hz: float = 10.0,

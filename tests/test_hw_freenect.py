@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from drivers.emulators.fakenect_dump import (DumpWriter, build_stub, depth_to_mm, fakenect_libdir,
-                                              read_frame, sim_dump)
+                                              read_frame, sim_dump, with_gap)
 from hal.clock import MonotonicClock
 from hal.health import Health
 from tests.test_hw_sick import DaemonRig, wait_for
@@ -49,6 +49,11 @@ def test_dump_format_is_what_fakenect_reads(tmp_path):
     np.testing.assert_array_equal(read_frame(tmp_path / "dump" / names[0])[0, 0], [200, 0, 0])
     with pytest.raises(FileExistsError):
         DumpWriter(tmp_path / "dump")
+    g = with_gap(tmp_path / "dump", tmp_path / "gap", 0, 5.0)
+    gnames = (g / "INDEX.txt").read_text().split()
+    gtimes = [float(n.split("-")[1]) for n in gnames]
+    assert gtimes[2] - gtimes[0] == pytest.approx(7.1) and gtimes[:2] == times[:2]
+    np.testing.assert_array_equal(read_frame(g / gnames[3]), d)
     with pytest.raises(ValueError):
         DumpWriter(tmp_path / "d2").add(c[:10], d)
 
@@ -181,9 +186,9 @@ def test_missing_device_is_a_fault_with_backoff(tmp_path, stub):
 # ---------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def greenhouse_dump(tmp_path_factory, stub):
+    """16 frames of the simulated greenhouse at 15 fps."""
     out = tmp_path_factory.mktemp("gh") / "dump"
-    info = sim_dump(out, scene="greenhouse", frames=12, fps=10.0)
-    return info
+    return sim_dump(out, scene="greenhouse", frames=16, fps=15.0)
 
 
 def _rgbd_options(info, stub):
@@ -191,27 +196,36 @@ def _rgbd_options(info, stub):
             "backoff_max_s": 0.4, **info["calibration"]}
 
 
-def test_daemon_runs_the_rgbd_pipeline_from_the_kinect(greenhouse_dump, stub):
-    rig = DaemonRig({"rgbd": _rgbd_options(greenhouse_dump, stub)}, pipelines=("rgbd",))
+def test_daemon_runs_the_rgbd_pipeline_from_the_kinect(greenhouse_dump, stub, tmp_path):
+    # the same frames, silent for 0.6 s after the 8th
+    gap = {**greenhouse_dump, "dump": str(with_gap(greenhouse_dump["dump"], tmp_path / "gap", 8,
+                                                   0.6))}
+    rig = DaemonRig({"rgbd": _rgbd_options(gap, stub)}, pipelines=("rgbd",))
     dev = rig.daemon.devices["rgbd"]
-    log = []                                  # (cycle ns, state, faults, rgbd frame stamp)
-    rig.daemon.loop.on_cycle.append(lambda r: log.append(
-        (r.stamp_ns, r.output.state.value, list(r.faults),
-         None if r.inputs.rgbd is None else r.inputs.rgbd.stamp_ns)))
+    period = 1 / 15.0
+
+    def rgbd_fault(c):
+        return any(f.startswith("rgbd:") for f in c[2])
+
     try:
-        # the pipeline runs on the Kinect's frames: cycles with no fault at all
-        assert wait_for(lambda: len({c[3] for c in log if c[3] and not c[2]}) >= 3, 10.0), \
-            log[-3:]
-        # the end of the dump (12 frames at 10 Hz): STOP within two cycles of the frame that
-        # did not come, naming the device
-        ok = next(i for i, c in enumerate(log) if not c[2])
-        assert wait_for(lambda: any("rgbd" in " ".join(c[2]) for c in log[ok:]), 6.0)
-        first = next(i for i in range(ok, len(log)) if "rgbd" in " ".join(log[i][2]))
-        assert log[first][1] == "STOP"
-        last_frame = max(c[3] for c in log[:first] if c[3])
-        due = last_frame + int(1e9 / 10.0)
-        after_due = [c for c in log if c[0] >= due]
-        assert next(i for i, c in enumerate(after_due) if c[1] == "STOP") + 1 <= 2
+        # the pipeline runs on the Kinect's frames: fault-free cycles on fresh frames
+        assert wait_for(lambda: len({c[3]["rgbd"] for c in rig.cycles if not c[2]}) >= 3,
+                        10.0), rig.cycles[-3:]
+        t_ok = next(c[0] for c in rig.cycles if not c[2])
+        # the Kinect goes silent (the dump's 0.6 s gap, inside libfreenect): STOP within two
+        # cycles of the frame that did not come
+        assert wait_for(lambda: rig.silence_stop_cycles("rgbd", period, t_ok) is not None, 4.0)
+        assert rig.silence_stop_cycles("rgbd", period, t_ok) <= 2
+        first = next(c for c in rig.cycles if c[0] >= t_ok and rgbd_fault(c))
+        assert "stale" in " ".join(first[2]) and first[1] == "STOP"
+        # frames again: the faults clear
+        assert wait_for(lambda: not rig.cycles[-1][2], 3.0), rig.cycles[-1]
+        t_back = rig.cycles[-1][0]
+        # the end of the dump (libfreenect returns an error): STOP within two cycles
+        assert wait_for(lambda: rig.silence_stop_cycles("rgbd", period, t_back) is not None, 4.0)
+        assert rig.silence_stop_cycles("rgbd", period, t_back) <= 2
+        end = next(c for c in rig.cycles if c[0] >= t_back and rgbd_fault(c))
+        assert "process_events returned -1" in " ".join(end[2]) and end[1] == "STOP"
         # replayed from the start after the back-off: the faults clear again
         assert wait_for(lambda: not rig.cycles[-1][2], 6.0), rig.cycles[-1]
         assert dev.counters["restarts"] >= 1

@@ -241,14 +241,32 @@ class DaemonRig:
                             "devices": {**devices, "link": {"type": "log"}}}, "test.toml")
         self.daemon = Daemon(cfg, mode="hardware", serve_status=False)
         self.daemon.start()
-        self.cycles: list[tuple[int, str, list]] = []
-        self.daemon.loop.on_cycle.append(
-            lambda r: self.cycles.append((r.stamp_ns, r.output.state.value, list(r.faults))))
+        # (clock ns, gate state, faults, {device: stamp of its newest sample})
+        self.cycles: list[tuple[int, str, list, dict]] = []
+        self.daemon.loop.on_cycle.append(self._record)
         self.thread = threading.Thread(target=self.daemon.run, daemon=True)
         self.thread.start()
 
+    def _record(self, r):
+        newest = {}
+        for n, d in self.daemon.devices.items():
+            s = d.newest()
+            newest[n] = None if s is None else d._stamp_of(s)
+        self.cycles.append((r.stamp_ns, r.output.state.value, list(r.faults), newest))
+
     def now(self):
         return self.daemon.clock.now_ns()
+
+    def silence_stop_cycles(self, name: str, period_s: float, since_ns: int):
+        """For a device that went silent after ``since_ns``: how many cycles from the moment
+        its first missing sample was due (its newest sample + one period) until the gate said
+        STOP (None if the device never faulted)."""
+        cyc = [c for c in list(self.cycles) if c[0] >= since_ns]
+        k = next((i for i, c in enumerate(cyc) if any(f.startswith(name + ":") for f in c[2])),
+                 None)
+        if k is None or cyc[k][3].get(name) is None:
+            return None
+        return self.cycles_until(cyc[k][3][name] + int(period_s * 1e9), "STOP")
 
     @property
     def state(self):
@@ -298,6 +316,14 @@ def test_daemon_stops_on_pulled_cable_and_recovers():
         emu.cmd("garbage 40")
         assert wait_for(lambda: rig.cycles_until(t_g, "STOP") is not None, 2.0)
         assert rig.cycles_until(t_g, "STOP") <= 3     # the command reaches the emulator first
+        assert wait_for(lambda: rig.state == "CLEAR", 4.0)
+        # silent laser (connection open, no scans): STOP within two cycles of the missing scan
+        t_s = rig.now()
+        emu.cmd("silent")
+        assert wait_for(lambda: rig.silence_stop_cycles("laser", 0.04, t_s) is not None, 2.0)
+        assert rig.silence_stop_cycles("laser", 0.04, t_s) <= 2
+        assert "stale" in " ".join(rig.cycles[-1][2])
+        emu.cmd("resume")
         assert wait_for(lambda: rig.state == "CLEAR", 4.0)
     finally:
         if rig:

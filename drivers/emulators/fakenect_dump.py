@@ -140,6 +140,28 @@ def sim_dump(out: str | Path, scene: str = "greenhouse", frames: int = 20, seed:
                             "mount_pitch_deg": cal.mount.pitch_deg}}
 
 
+def with_gap(src: str | Path, dst: str | Path, after_frame: int, gap_s: float) -> Path:
+    """A copy of dump ``src`` (files hard-linked where possible) in which the recorded clock
+    jumps ``gap_s`` after colour+depth frame ``after_frame``: played back, the device goes
+    silent that long. Any recorded dump works (fakenect only reads the times in the names)."""
+    src, dst = Path(src), Path(dst)
+    dst.mkdir(parents=True, exist_ok=False)
+    out, frame = [], -1
+    for name in (src / "INDEX.txt").read_text().split():
+        kind, t, rest = name.split("-", 2)
+        if kind == "r":
+            frame += 1
+        shift = gap_s if frame > after_frame else 0.0
+        new = f"{kind}-{float(t) + shift:f}-{rest}"
+        try:
+            os.link(src / name, dst / new)
+        except OSError:
+            shutil.copyfile(src / name, dst / new)
+        out.append(new)
+    (dst / "INDEX.txt").write_text("\n".join(out) + "\n")
+    return dst
+
+
 # ---------------------------------------------------------------------------------------------
 # running a program under fakenect
 def fakenect_libdir() -> Path | None:
