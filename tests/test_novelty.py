@@ -114,6 +114,25 @@ def test_density_with_few_neighbours_is_a_lower_bound_and_empty_model_is_zero():
     assert np.all(got <= ref * (1 + 1e-6)) and np.all(got > 0)
 
 
+def test_screened_density_decides_exactly_like_the_full_query():
+    rng = np.random.default_rng(2)
+    x = rng.normal(0.5, 0.03, (4000, 8)).astype(np.float32)
+    x[:400] = rng.uniform(0, 1, (400, 8))                  # a sparse part: low densities
+    m = ParzenModel(0.05, 0.1, 0.0, max_neighbours=64)
+    m.update(x)
+    q = np.vstack([x[:300] + 0.005, rng.uniform(0, 1, (300, 8)),
+                   rng.normal(0.5, 0.05, (300, 8))]).astype(np.float32)
+    full = m.density(q)
+    assert (full == 0).any() and (full > 0).mean() > 0.5
+    for rho in np.quantile(full[full > 0], [0.05, 0.5, 0.95]):
+        got = m.density_screened(q, rho, k_first=8)
+        np.testing.assert_array_equal(got < rho, full < rho)         # the same novel cells
+        low = full < rho
+        assert low.any() and (~low).any()
+        np.testing.assert_allclose(got[low], full[low], rtol=1e-9)   # exact where novel
+        assert np.all(got[~low] >= rho) and np.all(got <= full * (1 + 1e-9))
+
+
 # ---- forgetting and pruning (eqs. 6, 7, 9) ------------------------------------------------
 def test_weights_first_one_then_lambda_with_decay():
     lam = 0.2

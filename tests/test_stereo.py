@@ -7,9 +7,11 @@ import numpy as np
 import pytest
 
 from appliance.perception import SensorInputs, make_pipeline
-from appliance.perception.stereo import (StereoConfig, auto_disparities, disparity_regions,
-                                         height_band, make_matcher, mask_boxes, merge_boxes,
-                                         points_from_disparity)
+from appliance.perception.stereo import (StereoConfig, auto_disparities, dedupe_cells,
+                                         disparity_regions, downscale, ground_search_range,
+                                         height_band, make_matcher, mask_boxes, match_factor,
+                                         merge_boxes, points_from_disparity, scaled_calibration,
+                                         strip_boxes)
 from hal.types import Mount, PinholeCalibration, StereoCalibration
 
 REAL = Path(__file__).parent / "data" / "real"
@@ -63,6 +65,99 @@ def test_region_matching_equals_full_frame_inside_the_box_and_nothing_outside():
     outside[y0:y1, x0:x1] = False
     assert not part[outside].any()
     assert work < 0.35 * work_full                  # the point: far less matching
+
+
+def test_region_matching_with_a_shifted_range_agrees_with_ground_truth_and_full_range():
+    L, R, gt, vis = _cones()
+    m = make_matcher(StereoConfig(matcher="bm", num_disparities=64), 1.0, 1.0)
+    H, W = L.shape[:2]
+    full, _ = disparity_regions(m, L, R, [(0, 0, W, H)])
+    box = (200, 120, 300, 220)
+    x0, y0, x1, y1 = box
+    g = gt[y0:y1, x0:x1]
+    lo, hi = g[g > 0].min(), g[g > 0].max()
+    dmin = int(lo) - 3
+    n = int(np.ceil((hi + 3 - dmin) / 16.0)) * 16
+    assert dmin > 0 and n < 64
+    part, work = disparity_regions(m, L, R, [box], [(dmin, n)])
+    _, work_full = disparity_regions(m, L, R, [box])
+    p, f = part[y0:y1, x0:x1], full[y0:y1, x0:x1]
+    known = (g > 0) & vis[y0:y1, x0:x1]
+    both = known & (p > 0)
+    assert both.sum() > 0.5 * known.sum()
+    assert np.median(np.abs(p - g)[both]) < 0.5 and (np.abs(p - g)[both] > 2).mean() < 0.08
+    agree = (p > 0) & (f > 0)
+    assert (np.abs(p - f)[agree] <= 1.0).mean() > 0.9
+    assert p[p > 0].min() >= dmin + 1                # nothing at (or below) the range's end
+    outside = np.ones((H, W), bool)
+    outside[y0:y1, x0:x1] = False
+    assert not part[outside].any()
+    assert work <= work_full
+    # an empty range is skipped
+    none, w0 = disparity_regions(m, L, R, [box], [(dmin, 0)])
+    assert w0 == 0 and not none.any()
+
+
+def test_ground_search_range_keeps_every_point_above_the_ground_and_narrows_the_search():
+    c = _calib(0.5)                                   # 640x512, horizon near row 108
+    nd = auto_disparities(StereoConfig(), c.camera.fx, c.baseline_m)
+    ground = _plane_disparity(c)                      # exact, level vehicle, flat field
+    # a strip well below the horizon: the far end is the ground (with slack), not 0
+    box = (0, 300, 640, 340)
+    dmin, n = ground_search_range(c, box, nd)
+    assert n % 16 == 0 and dmin + n >= nd
+    assert 0 < dmin <= ground[300:340].min()          # every ground pixel can still be matched
+    assert n < nd                                     # and the search is narrower
+    # the ground 0.3 m lower or the vehicle pitched 3 deg nose-up stays inside the range
+    assert _plane_disparity(c, ground_h=-0.3)[300:340].min() >= dmin
+    # rays that can miss the ground (horizon in the box): no far limit
+    assert ground_search_range(c, (0, 60, 640, 140), nd) == (0, nd)
+    # the bottom rows see the ground nearer than min_depth_m (5 m here): nothing to search
+    nd5 = auto_disparities(StereoConfig(min_depth_m=5.0), c.camera.fx, c.baseline_m)
+    assert ground_search_range(c, (0, 480, 640, 512), nd5)[1] == 0
+    # near end from the foot: a wall at x = 12 m standing on the ground, its foot row
+    wall = _plane_disparity(c, wall_x=12.0)
+    col = wall[:, 320]
+    foot = int(np.flatnonzero(np.isclose(col, ground[:, 320]) & (np.arange(512) > 120))[0])
+    top = foot - 60
+    dmin, n = ground_search_range(c, (250, top, 390, foot + 1), nd, foot_row=foot)
+    w = wall[top:foot, 250:390]
+    assert dmin <= w.min() and w.max() < dmin + n
+    assert n < nd                                     # a wall 12 m away needs less than nd
+
+
+def test_strips_cover_the_box_with_their_own_ranges():
+    c = _calib(0.5)
+    nd = auto_disparities(StereoConfig(), c.camera.fx, c.baseline_m)
+    boxes, ranges = strip_boxes(c, [(100, 40, 300, 470)], nd, strip_rows=64)
+    assert boxes[0][1] == 40 and all(b[0] == 100 and b[2] == 300 for b in boxes)
+    for a, b in zip(boxes, boxes[1:]):
+        assert a[3] == b[1]                           # contiguous, no row matched twice
+    assert ranges[0] == (0, nd) and ranges[-1][0] > ranges[0][0]
+    assert boxes[-1][3] <= 470                        # rows with an empty range are dropped
+
+
+def test_matching_resolution_and_scaled_calibration():
+    assert match_factor(1280, 640) == 2 and match_factor(640, 640) == 1
+    assert match_factor(1281, 640) == 4 and match_factor(1280, 0) == 1
+    c = _calib(1.0)
+    h = scaled_calibration(c, 2)
+    assert (h.camera.width, h.camera.height) == (640, 512)
+    assert h.camera.fx == 550.0 and h.camera.cx == pytest.approx(319.75)
+    # the same ground plane reprojects to the ground from either resolution
+    pts, _ = points_from_disparity(_plane_disparity(h), h, stride=4)
+    np.testing.assert_allclose(pts[:, 2], 0.0, atol=1e-6)
+    img = np.arange(4 * 6 * 3, dtype=np.uint8).reshape(4, 6, 3)
+    small = downscale(img, 2)
+    assert small.shape == (2, 3, 3)
+    assert abs(int(small[0, 0, 0]) - img[:2, :2, 0].mean()) <= 0.5     # the 2x2 block mean
+
+
+def test_dedupe_keeps_the_first_point_of_each_cell():
+    xy = np.array([[1.01, 2.01], [1.05, 2.05], [-0.31, 0.0], [1.01, 2.11], [-0.39, 0.09]],
+                  np.float32)
+    out = dedupe_cells(xy)
+    np.testing.assert_array_equal(out, xy[[0, 2, 3]])
 
 
 def test_boxes_from_a_mask_are_merged_and_grown():
@@ -150,6 +245,17 @@ def _sim_frames(scene, n, start=0, scale=0.5):
     return out
 
 
+_FRAMES: dict = {}
+
+
+def _cached_frames(scene, n, start=0):
+    """Rendered once per test session (the simulator is the slow part)."""
+    key = (scene, n, start)
+    if key not in _FRAMES:
+        _FRAMES[key] = _sim_frames(scene, n, start)
+    return _FRAMES[key]
+
+
 def _near(points, ob, r=0.6):
     from appliance.evaluation import footprint_distance
     return int((footprint_distance(points, ob) <= r).sum()) if len(points) else 0
@@ -160,7 +266,7 @@ def test_novelty_pipeline_learns_the_field_sees_the_person_and_drops_stubble():
     cfg = parse_config({"perception": {"pipelines": ["stereo-novelty"],
                                        "stereo-novelty": {"matcher": "sgbm",
                                                           "update_every_frames": 2}}})
-    learn = _sim_frames("stubble-empty", 6)
+    learn = _cached_frames("stubble-empty", 6)
     course = _sim_frames("stubble-day", 1, start=20)[0]
     nov = make_pipeline("stereo-novelty", cfg)
     plain = make_pipeline("stereo", parse_config({"perception": {"stereo": {"matcher": "sgbm"}}}))
@@ -182,3 +288,53 @@ def test_novelty_pipeline_learns_the_field_sees_the_person_and_drops_stubble():
     assert far(dn.points_xy) < far(dp.points_xy)                # fewer stubble points
     assert dn.debug["novel_fraction"] < 0.5
     assert dn.debug["stereo_px_fraction"] < 0.9
+
+
+def _learnt_pipeline(**opts):
+    from appliance.config import parse_config
+    cfg = parse_config({"perception": {"pipelines": ["stereo-novelty"],
+                                       "stereo-novelty": {"matcher": "sgbm",
+                                                          "update_every_frames": 2, **opts}}})
+    nov = make_pipeline("stereo-novelty", cfg)
+    for s in _cached_frames("stubble-empty", 6):
+        nov.process(SensorInputs(s.stereo.stamp_ns, stereo=s.stereo, vehicle=s.vehicle))
+        nov.novelty.wait_idle()
+    return nov
+
+
+def test_depth_cue_sends_the_stubble_coloured_drum_to_dense_stereo():
+    course = _sim_frames("stubble-day", 1, start=4)[0]          # the look-alike drum ~8 m ahead
+    drum = next(o for o in course.truth if o["class"] == "look-alike-drum")
+    inp = SensorInputs(course.stereo.stamp_ns, stereo=course.stereo, vehicle=course.vehicle)
+    out = {}
+    for cue in ("off", "bm"):
+        nov = _learnt_pipeline(depth_cue=cue)
+        try:
+            out[cue] = nov.process(inp)
+        finally:
+            nov.close()
+    assert _near(out["off"].points_xy, drum) == 0               # novelty alone misses it
+    assert _near(out["bm"].points_xy, drum) > 0                 # the depth cue catches it
+    rows, cols = out["bm"].debug["grid"]
+    assert 0 < out["bm"].debug["cue_cells"]["depth"] < 0.25 * rows * cols
+    assert out["off"].debug["cue_cells"] == {}
+
+
+def test_cells_to_match_is_novel_or_any_extra_cue():
+    from types import SimpleNamespace
+    from appliance.perception.stereo_novelty import StereoNoveltyPipeline
+    nov = StereoNoveltyPipeline(background=False)
+    try:
+        mask = np.zeros((4, 5), bool)
+        mask[1, 1] = True
+        res = SimpleNamespace(mask=mask, affine=None, cell_px=16)
+        cue = np.zeros((4, 5), bool)
+        cue[3, 4] = True
+        out = nov._cells_to_match(res, (80, 64), {"depth": cue, "none": None})
+        assert out.shape == (64, 80)
+        assert out[16:32, 16:32].all() and out[48:64, 64:80].all()
+        assert out.sum() == 2 * 16 * 16 * 255
+        only = nov._cells_to_match(res, (80, 64), {})
+        assert only.sum() == 16 * 16 * 255
+    finally:
+        nov.close()

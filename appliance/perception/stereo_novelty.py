@@ -71,7 +71,7 @@ class StereoNoveltyConfig(StereoConfig):
                         doc="ground_range: a region's box is cut into column bands this wide (at "
                             "matching resolution), each trimmed to its masked rows and searched "
                             "from its own foot (0 = whole box)")
-    depth_cue: str = _f("off", choices=("off", "bm", "sgbm"),
+    depth_cue: str = _f("bm", choices=("off", "bm", "sgbm"),
                         doc="beyond the paper: coarse full-frame stereo with this matcher at "
                             "depth_cue_width_px; cells where enough coarse points lie in the "
                             "height band are matched densely too, novel or not (catches an "
@@ -107,6 +107,7 @@ class StereoNoveltyPipeline(Pipeline):
         self._stereo = StereoPipeline(self.options)
         self.last = None                       # (NoveltyResult, camera mask) for tools/tests
         self._cue_matcher, self._cue_key = None, None
+        self._pyramid: dict = {}
 
     # ---- the regions that get dense stereo -------------------------------------------------
     def _cells_to_match(self, res, size_wh: tuple[int, int], extra: dict) -> np.ndarray:
@@ -128,6 +129,19 @@ class StereoNoveltyPipeline(Pipeline):
             mask = cv2.bitwise_or(mask, (cue > 0).astype(np.uint8) * 255)
         return mask
 
+    def _pair(self, fr, k: int):
+        """The frame's left/right images downscaled by ``k`` (a power of two), each level made
+        from the one above it and kept for the rest of this frame."""
+        cache = self._pyramid
+        if cache.get("frame") is not fr:
+            cache.clear()
+            cache["frame"] = fr
+            cache[1] = (fr.left, fr.right)
+        if k not in cache:
+            up = self._pair(fr, k // 2)
+            cache[k] = (downscale(up[0], 2), downscale(up[1], 2))
+        return cache[k]
+
     def _extra_cues(self, fr, vehicle, res, kd: int) -> dict:
         """Cues beyond novelty (none in the paper), each a camera-frame cell mask on the
         novelty grid (``res.cell_px`` cells of the image at 1/``kd``)."""
@@ -145,7 +159,7 @@ class StereoNoveltyPipeline(Pipeline):
         H, W = fr.left.shape[:2]
         kc = match_factor(W, o.depth_cue_width_px)
         calib = scaled_calibration(fr.calib, kc)
-        left, right = downscale(fr.left, kc), downscale(fr.right, kc)
+        left, right = self._pair(fr, kc)
         key = (o.depth_cue, calib.camera.fx, calib.baseline_m)
         if self._cue_key != key:
             self._cue_matcher = make_matcher(replace(o, matcher=o.depth_cue,
@@ -225,7 +239,7 @@ class StereoNoveltyPipeline(Pipeline):
         if kd > 1:
             Kd = scaled_calibration(fr.calib, kd).camera.matrix()
             cell = (int(o.cell_px) // kd) if o.cell_px else None
-            res = self.novelty.detect(downscale(fr.left, kd), Kd, M, inputs.vehicle, cell)
+            res = self.novelty.detect(self._pair(fr, kd)[0], Kd, M, inputs.vehicle, cell)
         else:
             res = self.novelty.detect(fr.left, K, M, inputs.vehicle)
         t1, c1 = time.perf_counter(), time.thread_time()
@@ -239,7 +253,7 @@ class StereoNoveltyPipeline(Pipeline):
             cam_mask = full
         k = match_factor(W, o.match_width_px)
         calib = scaled_calibration(fr.calib, k)
-        left, right = downscale(fr.left, k), downscale(fr.right, k)
+        left, right = self._pair(fr, k)
         sel = downscale(cam_mask, k) if k > 1 else cam_mask
         matcher = self._stereo.matcher_for(calib)
         boxes, ranges = self._boxes(cam_mask, k, calib, matcher.nd, inputs.vehicle)
@@ -256,6 +270,7 @@ class StereoNoveltyPipeline(Pipeline):
         self.novelty.learn(res, exclude)
         t4, c4 = time.perf_counter(), time.thread_time()
         self.last = (res, cam_mask, exclude)
+        self._pyramid.clear()
         rows, cols = res.mask.shape
         h, w = left.shape[:2]
         return Detections(points_xy=xy, debug={
