@@ -308,9 +308,7 @@ class AravisStereoCamera(StereoCamera):
         for c in self.cams:
             c.close()
         self._streaming = False
-        self.backoff.failed()
-        self._count("reconnects")
-        self._fault(reason)
+        self._lost(self.backoff, "reconnects", reason)
 
     def _start(self) -> None:
         w, h = self.rectifier.cal.image_size
@@ -324,13 +322,7 @@ class AravisStereoCamera(StereoCamera):
     # ---- acquisition ----------------------------------------------------------------------------
     def _acquire_once(self) -> None:
         if not self._streaming:
-            if not self.backoff.ready():
-                self._stop_evt.wait(min(0.1, self.backoff.remaining_s()))
-                return
-            try:
-                self._start()
-            except DeviceError as exc:
-                self._drop(str(exc))
+            self._connect_when_due(self.backoff, self._start, self._drop)
             return
         now = time.monotonic()
         if self.cfg["trigger"] == "Software" and now >= self._next_trigger:

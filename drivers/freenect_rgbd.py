@@ -205,9 +205,7 @@ class FreenectDepthCamera(DepthCamera):
 
     def _drop(self, reason: str) -> None:
         self._kill()
-        self.backoff.failed()
-        self._count("restarts")
-        self._fault(reason)
+        self._lost(self.backoff, "restarts", reason)
 
     def _close(self) -> None:
         self._kill()
@@ -224,13 +222,7 @@ class FreenectDepthCamera(DepthCamera):
     # ---- acquisition ----------------------------------------------------------------------------
     def _acquire_once(self) -> None:
         if self._proc is None:
-            if not self.backoff.ready():
-                self._stop_evt.wait(min(0.1, self.backoff.remaining_s()))
-                return
-            try:
-                self._spawn()
-            except DeviceError as exc:
-                self._drop(str(exc))
+            self._connect_when_due(self.backoff, self._spawn, self._drop)
             return
         p = self._proc
         out, err = p.stdout.fileno(), p.stderr.fileno()

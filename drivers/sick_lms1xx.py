@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hal.devices import SafetyLaser
-from hal.errors import (DeviceDataError, DeviceError, DeviceInitializationError,
+from hal.errors import (DeviceDataError, DeviceInitializationError,
                         DeviceOperationError, DeviceTimeoutError)
 from hal.types import LaserGeometry, LaserScan, Mount
 
@@ -330,9 +330,7 @@ class SickLms1xxLaser(SafetyLaser):
         self._sock = None
         self.framer.reset()
         self._last_counter = None
-        self.backoff.failed()
-        self._count("disconnects")
-        self._fault(reason)
+        self._lost(self.backoff, "disconnects", reason)
 
     def _command(self, text: str, expect: bytes, timeout_s: float = 0.5) -> bytes:
         """Send one CoLa-A command, return the payload of the answer starting with ``expect``
@@ -410,13 +408,7 @@ class SickLms1xxLaser(SafetyLaser):
     # ---- acquisition --------------------------------------------------------------------------
     def _acquire_once(self) -> None:
         if self._sock is None:
-            if not self.backoff.ready():
-                self._stop_evt.wait(min(0.1, self.backoff.remaining_s()))
-                return
-            try:
-                self._connect()
-            except DeviceError as exc:
-                self._drop(str(exc))
+            self._connect_when_due(self.backoff, self._connect, self._drop)
             return
         try:
             frames = self._receive(0.1)

@@ -32,7 +32,7 @@ import time
 import numpy as np
 
 from hal.devices import StrobeTrigger
-from hal.errors import DeviceError, DeviceOperationError
+from hal.errors import DeviceOperationError
 
 from .calibration import Backoff
 
@@ -201,9 +201,7 @@ class StrobeSerialTrigger(StrobeTrigger):
         self._buf = b""
         self._pending.clear()
         self._last_pulses = None
-        self.backoff.failed()
-        self._count("reopens")
-        self._fault(reason)
+        self._lost(self.backoff, "reopens", reason)
 
     def _connect(self) -> None:
         import serial
@@ -239,13 +237,7 @@ class StrobeSerialTrigger(StrobeTrigger):
     def _acquire_once(self) -> None:
         import serial
         if self._ser is None:
-            if not self.backoff.ready():
-                self._stop_evt.wait(min(0.1, self.backoff.remaining_s()))
-                return
-            try:
-                self._connect()
-            except DeviceError as exc:
-                self._drop(str(exc))
+            self._connect_when_due(self.backoff, self._connect, self._drop)
             return
         try:
             while True:

@@ -280,6 +280,18 @@ class DaemonRig:
                 return i + 1
         return None
 
+    def check_silence(self, name: str, period_s: float, silence, resume, reason="stale"):
+        """``silence()`` makes device ``name`` go quiet: STOP within two cycles of its first
+        missing sample's due time, ``reason`` among the faults; ``resume()``: CLEAR again."""
+        t = self.now()
+        silence()
+        assert wait_for(lambda: self.silence_stop_cycles(name, period_s, t) is not None, 2.0)
+        n = self.silence_stop_cycles(name, period_s, t)
+        assert n <= 2, (n, [c[:3] for c in self.cycles if c[0] >= t][:5])
+        assert reason in " ".join(self.cycles[-1][2])
+        resume()
+        assert wait_for(lambda: self.state == "CLEAR", 4.0), self.cycles[-1][:3]
+
     def close(self):
         self.daemon.request_stop()
         self.thread.join(3)
@@ -318,13 +330,8 @@ def test_daemon_stops_on_pulled_cable_and_recovers():
         assert rig.cycles_until(t_g, "STOP") <= 3     # the command reaches the emulator first
         assert wait_for(lambda: rig.state == "CLEAR", 4.0)
         # silent laser (connection open, no scans): STOP within two cycles of the missing scan
-        t_s = rig.now()
-        emu.cmd("silent")
-        assert wait_for(lambda: rig.silence_stop_cycles("laser", 0.04, t_s) is not None, 2.0)
-        assert rig.silence_stop_cycles("laser", 0.04, t_s) <= 2
-        assert "stale" in " ".join(rig.cycles[-1][2])
-        emu.cmd("resume")
-        assert wait_for(lambda: rig.state == "CLEAR", 4.0)
+        rig.check_silence("laser", 0.04, lambda: emu.cmd("silent"), lambda: emu.cmd("resume"),
+                          "laser: stale")
     finally:
         if rig:
             rig.close()

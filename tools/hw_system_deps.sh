@@ -11,24 +11,12 @@
 #     library, which the freenect driver's tests play recorded dumps through
 set -euo pipefail
 cd "$(dirname "$0")/.."
-pkgs=(aravis-tools aravis-tools-cli gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev
-      pkg-config gcc python3-dev socat iproute2 libfreenect-dev libfreenect-bin)
-missing=()
-for p in "${pkgs[@]}"; do
-  dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
-done
-if [ ${#missing[@]} -gt 0 ]; then
-  if [ "$(id -u)" -ne 0 ]; then
-    echo "hw_system_deps: need root to install: ${missing[*]}" >&2
-    exit 1
-  fi
-  apt-get update -qq
-  DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${missing[@]}"
-fi
-PY=${PY:-.venv/bin/python}
+source tools/ci_system_deps.sh          # apt_ensure, pip_ensure
+apt_ensure aravis-tools aravis-tools-cli gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev \
+  pkg-config gcc python3-dev socat iproute2 libfreenect-dev libfreenect-bin
 if [ -x "$PY" ]; then
-  "$PY" -c "import gi" 2>/dev/null || "$PY" -m pip install --quiet 'PyGObject<3.51'
-  "$PY" -c "import serial" 2>/dev/null || "$PY" -m pip install --quiet pyserial
-  "$PY" -c "import sick_scan_tcp" 2>/dev/null || "$PY" -m pip install --quiet sick-scan-tcp
-  "$PY" -c "import freenect" 2>/dev/null || "$PY" -m pip install --quiet freenect
+  pip_ensure gi 'PyGObject<3.51'
+  pip_ensure serial pyserial
+  pip_ensure sick_scan_tcp sick-scan-tcp
+  pip_ensure freenect freenect
 fi

@@ -9,3 +9,22 @@
 Each emulator takes fault-injection commands on stdin (one per line, see its module) and prints
 JSON events on stdout, so a test or a technician can drive it.
 """
+
+
+def serve_commands(emu, lines=None) -> None:
+    """Feed fault-injection commands (stdin lines) to ``emu.command(line)`` until it returns
+    False ("quit"); if stdin closes first (run in the background), keep serving until killed.
+    Always stops the emulator."""
+    import sys
+    import time
+    try:
+        for line in (sys.stdin if lines is None else lines):
+            if not emu.command(line):
+                break
+        else:
+            while True:
+                time.sleep(3600)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        emu.stop()

@@ -44,6 +44,8 @@ import numpy as np
 
 from hal.types import LaserGeometry
 
+from . import serve_commands
+
 
 # ---------------------------------------------------------------------------------------------
 def _h(v: int) -> str:
@@ -371,17 +373,7 @@ def main(argv=None) -> int:
         emu.put_post(a.object)
     emu.start()
     log(event="listening", host=a.host, port=emu.port, beams=geo.beams, scan_hz=a.scan_hz)
-    try:
-        for line in sys.stdin:
-            if not emu.command(line):
-                break
-        else:
-            while True:           # stdin closed (run in the background): serve until killed
-                time.sleep(3600)
-    except KeyboardInterrupt:
-        pass
-    finally:
-        emu.stop()
+    serve_commands(emu)
     return 0
 
 

@@ -25,6 +25,8 @@ import time
 
 from drivers.strobe_serial import checksum, frame_line
 
+from . import serve_commands
+
 
 class StrobeControllerEmulator:
     model, firmware = "FG-STROBE-EMU", "1.0"
@@ -197,17 +199,7 @@ def main(argv=None) -> int:
         path = a.port
     emu = StrobeControllerEmulator(fd, log=log).start()
     log(event="ready", port=path)
-    try:
-        for line in sys.stdin:
-            if not emu.command(line):
-                break
-        else:
-            while True:
-                time.sleep(3600)
-    except KeyboardInterrupt:
-        pass
-    finally:
-        emu.stop()
+    serve_commands(emu)
     return 0
 
 
