@@ -12,14 +12,17 @@ from scipy.spatial.distance import mahalanobis as scipy_mahalanobis
 
 from appliance import rgbd_model
 from appliance.perception import SensorInputs, make_pipeline
-from appliance.perception.rgbd import RgbdPipeline, RgbdPipelineConfig
+from appliance.perception.rgbd import PAPER_RULE, RgbdPipeline, RgbdPipelineConfig
 from appliance.perception.rgbd_classes import train_model
 from appliance.perception.rgbd_colour import (COLOUR_SPACES, UNDEFINED, ColourClassifier,
                                               colour_features, fit_gaussian, fit_mixture,
                                               mahalanobis)
-from appliance.perception.rgbd_decision import not_traversable, obstacle_groups
-from appliance.perception.rgbd_slope import paper_vertical_angles, slope_map, vertical_angles
-from appliance.perception.rgbd_texture import (chi_square, classify_histograms, lbp_codes,
+from appliance.perception.rgbd_decision import (NOT_CLASSIFIED, Rule, decide, not_traversable,
+                                                obstacle_groups, touching_ground)
+from appliance.perception.rgbd_slope import (paper_vertical_angles, slope_map, steep_map,
+                                             vertical_angles)
+from appliance.perception.rgbd_texture import (chi_square, classify_histograms, lbp_codes, to_grey,
+                                               window_index,
                                                normalised_histogram, window_histograms)
 from hal.types import DepthCalibration, DepthFrame, Mount, PinholeCalibration
 
@@ -50,6 +53,25 @@ def test_slope_of_a_tilted_plane_is_its_angle(tilt, pitch, fy, cy):
     assert np.allclose(s[ok], tilt, atol=0.05), (np.nanmin(s), np.nanmax(s))
     s4 = slope_map(z, fy, cy, math.radians(pitch), 0.5, 5.0, 4)
     assert np.allclose(s4[np.isfinite(s4)], tilt, atol=0.05)
+
+
+def test_thresholded_slope_is_the_slope_map_thresholded():
+    """steep_map (the pipeline's fast path, no angles) says what slope_map > 40 deg says."""
+    rng = np.random.default_rng(11)
+    depths = [plane_depth(480, 16, 609.3, 239.5, 10.0, 0.9, t, 1.0) for t in (0, 39, 41, 60)]
+    z = rng.uniform(0.3, 6.0, (120, 160)).astype(np.float32)     # rough, some out of range
+    z[rng.random(z.shape) < 0.1] = 0.0
+    depths.append(cv2.GaussianBlur(z, (7, 7), 2.0))
+    for z in depths:
+        for step in (1, 4):
+            s = slope_map(z, 609.3, 239.5, 0.17, 0.5, 5.0, step)
+            steep, level = steep_map(z, 609.3, 239.5, 0.17, 0.5, 5.0, step, 40.0)
+            with np.errstate(invalid="ignore"):
+                ref_s, ref_l = s > 40.0, s <= 40.0
+                sure = ~(np.abs(s - 40.0) < 1e-3)          # float32 rounding at 40 deg itself
+            assert np.array_equal(steep[sure], ref_s[sure])
+            assert np.array_equal(level[sure], ref_l[sure])
+            assert not (steep & level).any()
 
 
 def test_vertical_wall_is_90_degrees_and_ignores_out_of_range_depth():
@@ -106,8 +128,8 @@ def test_no_suspected_pixels_in_any_colour_space():
     frame, _ = _frame(CRATE)
     flat = DepthFrame(0, 0, frame.color, np.zeros_like(frame.depth_m), frame.calib)
     for space in COLOUR_SPACES:
-        pipe = RgbdPipeline(RgbdPipelineConfig(colour_space=space, texture="always"),
-                            model=_model())
+        pipe = RgbdPipeline(RgbdPipelineConfig(colour_space=space, texture="always",
+                                               colour_lut_bits=0), model=_model())
         assert len(pipe.process(SensorInputs(0, rgbd=flat)).points_xy) == 0
 
 
@@ -126,6 +148,31 @@ def test_mahalanobis_matches_scipy_and_the_classifier():
     want = np.where(ref.min(1) < 3.0, ref.argmin(1), UNDEFINED)
     assert np.array_equal(clf.classify(z), want)
     assert set(want) == {0, 1, UNDEFINED}             # all three outcomes exercised
+
+
+@pytest.mark.parametrize("space", ["rgb", "lab"])
+def test_colour_lookup_table_agrees_with_the_exact_distances(space):
+    """The 8-bit table (the default) is eq. 5 for every colour. The 7-bit one classifies each
+    2x2x2 cell at its centre: it may differ only within the quantisation error of the threshold
+    or of a class boundary."""
+    m = rgbd_model.load(None)
+    rng = np.random.default_rng(12)
+    px = [rng.multivariate_normal(g.means[0], g.covs[0] * 4, 3000) for g in m.mixtures("rgb")]
+    px.append(rng.uniform(0, 255, (3000, 3)))
+    bgr = np.clip(np.concatenate(px), 0, 255).astype(np.uint8)[:, ::-1]   # model RGB -> BGR
+    img = np.ascontiguousarray(bgr).reshape(-1, 1, 3)
+    exact = ColourClassifier(m.mixtures(space), 3.5)
+    feats = colour_features(bgr, space)
+    want = exact.classify(feats)
+    assert len(set(want)) == 5                                    # 4 classes + undefined
+    assert np.array_equal(ColourClassifier(m.mixtures(space), 3.5, space, 8)
+                          .classify_image(img)[:, 0], want)
+    got7 = ColourClassifier(m.mixtures(space), 3.5, space, 7).classify_image(img)[:, 0]
+    d = np.sort(exact.distances(feats), axis=1)
+    clear = (np.abs(d[:, 0] - 3.5) > 0.8) & (d[:, 1] - d[:, 0] > 0.8)
+    assert clear.mean() > 0.5
+    assert np.array_equal(got7[clear], want[clear])
+    assert np.mean(got7 == want) > 0.95
 
 
 def test_linear_colour_spaces_give_rgb_distances_delta_rgb_does_not():
@@ -197,6 +244,37 @@ def test_window_histograms_and_chi_square():
     assert np.isclose(normalised_histogram(np.array([3, 3, 4, 4])).sum(), 1.0)
 
 
+def test_window_classes_are_the_nearest_chi_square_under_the_threshold():
+    rng = np.random.default_rng(13)
+    t, m = rng.random((200, 256)), rng.random((4, 256))
+    t[t < 0.8] = 0.0                                  # sparse, like 400-pixel windows
+    m[1, m[1] < 0.5] = 0.0                            # a class with empty bins
+    t /= t.sum(1, keepdims=True)
+    m /= m.sum(1, keepdims=True)
+    d = chi_square(t[:, None], m[None])
+    thr = float(np.median(d.min(1)))
+    want = np.where(d.min(1) < thr, d.argmin(1), UNDEFINED)
+    assert np.array_equal(classify_histograms(t, m, thr), want)
+    assert len(set(want)) >= 3
+
+
+@pytest.mark.parametrize("window", [20, 7])          # whole windows, and ragged edge windows
+def test_texture_map_classifies_the_window_of_every_suspected_pixel(window):
+    frame, _ = _frame(BUSH)
+    pipe = RgbdPipeline(RgbdPipelineConfig(texture="always", texture_window_px=window),
+                        model=_model())
+    res = pipe.analyse(SensorInputs(0, rgbd=frame))
+    codes = lbp_codes(to_grey(frame.color))
+    cls = classify_histograms(window_histograms(codes, window), pipe.model.lbp, 0.5)
+    widx, _, _ = window_index(codes.shape, window)
+    assert res.suspected.any()
+    assert np.array_equal(res.texture_class, np.where(res.suspected, cls[widx], NOT_CLASSIFIED))
+    one = np.zeros(res.suspected.shape, bool)
+    one[50, 70] = True                                # one suspected pixel in its window
+    tmap = pipe._texture_map(frame.color, one)
+    assert tmap[50, 70] == cls[widx[50, 70]] and (tmap[~one] == NOT_CLASSIFIED).all()
+
+
 # ---------------------------------------------------------------------------------------------
 # the decision rule
 # ---------------------------------------------------------------------------------------------
@@ -211,12 +289,16 @@ def test_paper_dilation_puts_a_ground_coloured_fringe_round_a_bush_coloured_box(
     obstacle; those pixels are ground-coloured, and ground is not traversable in the paper's
     rule, so the fringe alone makes an obstacle group (why ``morphology = "close"`` exists)."""
     frame, face = _frame(BUSH)
-    pipe = RgbdPipeline(RgbdPipelineConfig(texture="off", depth_median_px=0, slope_step_px=1),
-                        model=_model())
+    paper = {**PAPER_RULE, "texture": "off", "depth_median_px": 0, "slope_step_px": 1}
+    pipe = RgbdPipeline(RgbdPipelineConfig(**paper), model=_model())
     res = pipe.analyse(SensorInputs(0, rgbd=frame))
     assert res.groups_colour == 1
     assert not res.colour_obstacles[np.ix_(face, np.arange(61, 99))].any()   # not the face
     assert res.colour_obstacles[:, 59].any() and res.colour_obstacles[:, 100].any()
+    # ours: a ground-coloured pixel at ground height is traversable, so no fringe group
+    ours = RgbdPipeline(RgbdPipelineConfig(texture="off", depth_median_px=0, slope_step_px=1),
+                        model=_model())
+    assert ours.analyse(SensorInputs(0, rgbd=frame)).groups_colour == 0
 
 
 def test_decision_group_size_contact_and_classes():
@@ -244,6 +326,66 @@ def test_decision_group_size_contact_and_classes():
     assert n == 1 and not mask[34:40, 22:27].any()
 
 
+def test_contact_looks_up_to_k_rows_down():
+    rng = np.random.default_rng(14)
+    for k in (1, 2, 3, 20):
+        m, surf = rng.random((60, 50)) < 0.3, rng.random((60, 50)) < 0.2
+        ref = np.zeros_like(m)
+        for j in range(1, k + 1):
+            ref[:-j] |= m[:-j] & surf[j:]
+        assert np.array_equal(touching_ground(m, surf, k), ref), k
+
+
+def test_decision_rule_paper_versus_ours():
+    """Classes 0 bush, 1 pepper (traversable), 2 ground, 3 cover. Groups standing on the surface
+    (rows 40+): A ground-coloured at ground height, B undefined colour and tall, C undefined but
+    flat on the ground, D1 bush-coloured with the cover's texture, D2 bush-coloured with undefined
+    texture."""
+    surface = _maps()
+    height = np.zeros(surface.shape, np.float32)
+    height[:40] = ((40 - np.arange(40)) * 0.03)[:, None]       # 0.3 m at row 30 .. 0.03 at 39
+    sus = np.zeros_like(surface)
+    colour = np.full(surface.shape, NOT_CLASSIFIED, np.int16)
+    texture = np.full(surface.shape, NOT_CLASSIFIED, np.int16)
+    groups = {"A": (slice(36, 40), slice(5, 15), 2, 0), "B": (slice(30, 40), slice(20, 30), -1, 0),
+              "C": (slice(36, 40), slice(35, 45), -1, 0), "D1": (slice(30, 40), slice(50, 60), 0, 3),
+              "D2": (slice(30, 40), slice(62, 72), 0, -1)}
+    for r, c, col, tex in groups.values():
+        sus[r, c] = True
+        colour[r, c] = col
+        texture[r, c] = tex
+
+    def found(d):
+        return {g for g, (r, c, _, _) in groups.items() if d.obstacles[r, c].all()}
+
+    paper = decide(sus, surface, colour, texture, Rule.paper([0, 1], 4), height)
+    assert (paper.n_colour, paper.n_texture) == (3, 2)
+    assert found(paper) == {"A", "B", "C", "D1", "D2"}
+    ours = Rule((0, 1), 4, ground_classes=(2,), ground_max_height_m=0.25,
+                texture_role="traversable-colour", texture_undefined=False, min_height_m=0.15)
+    d = decide(sus, surface, colour, texture, ours, height)
+    assert (d.n_colour, d.n_texture) == (1, 1) and found(d) == {"B", "D1"}
+    assert not d.texture[groups["B"][0], groups["B"][1]].any()   # texture judges D1 only
+    # the same ground-coloured pixels above ground height are not the path
+    high = height.copy()
+    high[36:40, 5:15] = 0.3
+    assert "A" in found(decide(sus, surface, colour, texture, ours, high))
+    # without colour classes' help, texture alone (colour pass) is the paper's OR
+    d0 = decide(sus, surface, colour, None, ours, height)
+    assert d0.texture is None and found(d0) == {"B"}
+
+
+def test_a_group_cut_off_by_the_image_bottom_stands_on_unseen_ground():
+    cand = np.zeros((60, 80), bool)
+    cand[45:60, 10:20] = True                          # reaches the last row, no surface seen
+    none = np.zeros_like(cand)
+    assert obstacle_groups(cand, none, 30, 3)[1] == 0
+    assert obstacle_groups(cand, none, 30, 3, bottom_rows=8)[1] == 1
+    cand[45:60, 10:20] = False
+    cand[40:50, 10:20] = True                          # ends 10 rows above the bottom
+    assert obstacle_groups(cand, none, 30, 3, bottom_rows=8)[1] == 0
+
+
 # ---------------------------------------------------------------------------------------------
 # the whole pipeline on a synthetic frame: flat ground and a box 3 m ahead
 # ---------------------------------------------------------------------------------------------
@@ -259,10 +401,13 @@ def _model():
         px = np.clip(rng.normal(col, 6, (500, 3)), 0, 255).astype(np.uint8)
         codes = rng.integers(0, 256, 500).astype(np.uint8)
         samples[name] = [(px, codes)]
+    # the greenhouse cover: white and flat (every LBP neighbour >= the centre: code 255)
+    px = np.clip(rng.normal(250, 3, (500, 3)), 0, 255).astype(np.uint8)
+    samples["cover"] = [(px, np.full(500, 255, np.uint8))]
     return train_model(samples)
 
 
-def _frame(box_colour, box_x=3.0, box_h=0.4):
+def _frame(box_colour, box_x=3.0, box_h=0.4, flat_face=False):
     """160x120 frame: level ground under a camera 0.9 m up pitched 10 deg down at x = 1 m, a box
     face (columns 60-99) box_x ahead of the vehicle origin, white cover above the horizon."""
     w, h = 160, 120
@@ -286,19 +431,25 @@ def _frame(box_colour, box_x=3.0, box_h=0.4):
     colour[np.ix_(face, np.arange(60, 100))] = box_colour
     rng = np.random.default_rng(8)
     colour = np.clip(colour + rng.normal(0, 3, colour.shape), 0, 255).astype(np.uint8)
+    if flat_face:                                           # evenly painted: no sensor noise
+        colour[np.ix_(face, np.arange(60, 100))] = box_colour
     return DepthFrame(0, 0, colour, z, DepthCalibration(cam, mount)), face
 
 
-@pytest.mark.parametrize("colour,texture,morphology,expect", [
-    (CRATE, "off", "dilate", True),     # undefined colour, on the ground: obstacle
-    (CRATE, "off", "close", True),
-    (BUSH, "off", "close", False),      # bush-coloured: traversable
-    (BUSH, "always", "close", True),    # ... but its flat texture is no class: texture finds it
+@pytest.mark.parametrize("colour,texture,morphology,rule,expect", [
+    (CRATE, "off", "dilate", "paper", True),    # undefined colour, on the ground: obstacle
+    (CRATE, "off", "close", "paper", True),
+    (CRATE, "off", "dilate", "ours", True),
+    (BUSH, "off", "close", "paper", False),     # bush-coloured: traversable
+    (BUSH, "off", "dilate", "ours", False),
+    (BUSH, "always", "close", "paper", True),   # ... its texture is no class: texture finds it
+    (BUSH, "always", "dilate", "ours", True),   # ... its texture is the flat cover's: found
 ])
-def test_pipeline_finds_a_box_on_the_ground(colour, texture, morphology, expect):
-    frame, face = _frame(colour)
-    opts = RgbdPipelineConfig(texture=texture, depth_median_px=0, slope_step_px=1,
-                              colour_threshold=3.5, texture_window_px=10, morphology=morphology)
+def test_pipeline_finds_a_box_on_the_ground(colour, texture, morphology, rule, expect):
+    frame, face = _frame(colour, flat_face=True)
+    opts = RgbdPipelineConfig(**{**(PAPER_RULE if rule == "paper" else {}), "texture": texture,
+                                 "depth_median_px": 0, "slope_step_px": 1,
+                                 "texture_window_px": 10, "morphology": morphology})
     pipe = RgbdPipeline(opts, model=_model())
     res = pipe.analyse(SensorInputs(0, rgbd=frame))
     pts = res.points_xy
@@ -310,6 +461,9 @@ def test_pipeline_finds_a_box_on_the_ground(colour, texture, morphology, expect)
     assert np.all(np.abs(pts[:, 0] - 3.0) < 0.2), (pts[:, 0].min(), pts[:, 0].max())
     assert np.median(np.abs(pts[:, 0] - 3.0)) < 0.02
     assert np.all(np.abs(pts[:, 1]) < 0.9)
+    # process() (no slope map in degrees, strided projection) says the same
+    fast = pipe.process(SensorInputs(0, rgbd=frame)).points_xy
+    assert len(fast) > 10 and np.all(np.abs(fast[:, 0] - 3.0) < 0.2)
 
 
 def test_pipeline_ignores_a_box_beyond_the_range_and_rejects_mismatched_frames():
@@ -319,6 +473,36 @@ def test_pipeline_ignores_a_box_beyond_the_range_and_rejects_mismatched_frames()
     bad = DepthFrame(0, 0, frame.color[:-1], frame.depth_m, frame.calib)
     with pytest.raises(ValueError, match="differ"):
         pipe.process(SensorInputs(0, rgbd=bad))
+
+
+def test_depth_holes_standing_on_the_ground_are_obstacles():
+    """A shiny face returns no depth (the paper's Fig. 8): with ``holes`` a solid hole of no
+    traversable colour standing on the ground is placed where its foot meets the ground; a hole
+    in the cover's colour (the view beyond the range) and a narrow one (a depth shadow) are not."""
+    frame, face = _frame(CRATE)
+    cols = np.arange(60, 100)
+    z = frame.depth_m.copy()
+    z[np.ix_(face, cols)] = 0.0
+    shiny = DepthFrame(0, 0, frame.color, z, frame.calib)
+    on = RgbdPipeline(RgbdPipelineConfig(texture="off"), model=_model())
+    res = on.analyse(SensorInputs(0, rgbd=shiny))
+    assert res.groups_holes == 1 and res.groups_colour == 0
+    pts = res.points_xy
+    assert len(pts) > 20 and np.all(np.abs(pts[:, 0] - 3.0) < 0.25), pts[:, 0]
+    off = RgbdPipeline(RgbdPipelineConfig(texture="off", holes=False), model=_model())
+    assert len(off.process(SensorInputs(0, rgbd=shiny)).points_xy) == 0
+    white = frame.color.copy()
+    white[np.ix_(face, cols)] = (250, 250, 250)
+    assert on.analyse(SensorInputs(0, rgbd=DepthFrame(0, 0, white, z, frame.calib))).groups_holes \
+        == 0
+    ground, _ = _frame(CRATE, box_h=0.0)               # no box: a hole in the ground's depth
+    for width, n in ((8, 0), (30, 1)):
+        zz = ground.depth_m.copy()
+        zz[70:95, 60:60 + width] = 0.0
+        cc = ground.color.copy()
+        cc[70:95, 60:60 + width] = CRATE
+        r = on.analyse(SensorInputs(0, rgbd=DepthFrame(0, 0, cc, zz, ground.calib)))
+        assert r.groups_holes == n, width
 
 
 # ---------------------------------------------------------------------------------------------

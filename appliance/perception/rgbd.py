@@ -14,9 +14,13 @@ Per frame, as the paper's Fig. 1:
 Obstacle pixels with a valid depth go to 3-D (optical frame), through the mount into the vehicle
 frame, and out as (x, y) points for the grid.
 
-Our additions, each off by default so the default is the paper: ``holes`` (depth holes on shiny
-surfaces standing on the ground and of no traversable colour are obstacles, placed where their
-bottom edge meets the ground plane) and ``use_vehicle_pitch``.
+The defaults are the measured best on the simulated greenhouse (docs/rgbd.md), not the paper:
+the surface an obstacle stands on is low ground (not any level patch: bush tops are level too),
+ground-class pixels at ground height are traversable, texture judges only the pixels colour
+called traversable and runs on every frame, a group must rise ``min_height_m`` above the
+ground, and depth holes standing on the ground (shiny surfaces) are obstacles. ``PAPER_RULE``
+holds the options of the paper's own decision; the decision itself is one function
+(rgbd_decision.decide) with the cues as inputs.
 
 The class model is a file (``model``), read once at construction by appliance.rgbd_model
 (perception itself does no I/O); tests and tools may pass a model object instead.
@@ -35,7 +39,7 @@ from .base import Detections, Pipeline, SensorInputs
 from .rgbd_classes import RgbdClassModel
 from .rgbd_colour import COLOUR_SPACES, ColourClassifier, colour_features
 from .rgbd_decision import NOT_CLASSIFIED, Rule, decide, not_traversable, obstacle_groups
-from .rgbd_slope import height_map, slope_map, suspected_map
+from .rgbd_slope import height_map, slope_map, steep_map, suspected_from
 from .rgbd_texture import classify_histograms, lbp_codes, to_grey, window_histograms, window_index
 
 
@@ -55,51 +59,72 @@ class RgbdPipelineConfig:
     morphology: str = _f("dilate", choices=("dilate", "close"),
                          doc="dilate (paper) or close the suspected map")
     colour_threshold: float = _f(3.5, lo=0.1, hi=100.0, doc="Mahalanobis distance for a class")
-    texture: str = _f("after-colour", choices=("after-colour", "always", "off"),
-                      doc="when the LBP texture classifier runs")
-    texture_scope: str = _f("suspected", choices=("suspected", "traversable-colour"),
+    colour_lut_bits: int = _f(8, choices=(0, 6, 7, 8),
+                              doc="classify colours through a lookup table of this many bits per "
+                                  "channel (8 = exact, 16 MB, built once at start; 0 = "
+                                  "Mahalanobis per pixel)")
+    texture: str = _f("always", choices=("after-colour", "always", "off"),
+                      doc="when the LBP texture classifier runs (paper: after-colour, only on "
+                          "frames where colour found an obstacle)")
+    texture_scope: str = _f("traversable-colour", choices=("suspected", "traversable-colour"),
                             doc="pixels texture may turn into obstacles: every suspected one "
                                 "(paper) or only those colour called traversable")
-    texture_undefined: bool = _f(True, doc="an undefined texture window is obstacle evidence "
-                                           "(paper: True)")
+    texture_undefined: bool = _f(False, doc="an undefined texture window is obstacle evidence "
+                                            "(paper: true)")
     texture_window_px: int = _f(20, lo=3, hi=100)
     texture_threshold: float = _f(0.5, lo=0.0, hi=2.0, doc="chi-square distance for a class")
     min_pixels: int = _f(30, lo=1, hi=100000, doc="smallest obstacle group")
+    contact_px: int = _f(3, lo=1, hi=50, doc="surface within this many rows below a group "
+                                             "(paper: 1)")
+    texture_contact_px: int = _f(20, lo=0, hi=100, doc="texture groups may touch the surface "
+                                                       "this far below (0 = contact_px, paper)")
+    ground_max_height_m: float = _f(0.25, lo=0.0, hi=5.0,
+                                    doc="only surface lower than this counts as the ground a "
+                                        "group must stand on (0 = any level surface, paper)")
+    traversable: tuple = _f(("bush", "pepper"), doc="class names the vehicle may drive through")
+    ground_classes: tuple = _f(("ground",), doc="class names that are traversable below "
+                                                "ground_max_height_m (paper: none)")
+    bottom_grounded: bool = _f(True, doc="a group cut off by the image bottom stands on the "
+                                         "ground the camera cannot see (paper: false)")
+    min_height_m: float = _f(0.15, lo=0.0, hi=3.0, doc="a group must rise this high above the "
+                                                       "ground plane (0 = any, paper)")
     open_px: int = _f(0, lo=0, hi=15, doc="opening of the obstacle candidates before grouping "
                                           "(0 = none, the paper)")
-    bottom_grounded: bool = _f(False, doc="a group cut off by the image bottom stands on the "
-                                          "ground the camera cannot see")
-    texture_contact_px: int = _f(0, lo=0, hi=100, doc="texture groups may touch the surface "
-                                                      "this far below (0 = contact_px)")
-    min_height_m: float = _f(0.0, lo=0.0, hi=3.0, doc="a group must rise this high above the "
-                                                      "ground plane (0 = any, the paper)")
-    contact_px: int = _f(1, lo=1, hi=50, doc="surface within this many rows below a group")
-    ground_max_height_m: float = _f(0.0, lo=0.0, hi=5.0,
-                                    doc="only surface lower than this counts as the ground a "
-                                        "group must stand on (0 = any surface, the paper)")
-    traversable: tuple = _f(("bush", "pepper"), doc="class names the vehicle may drive through")
-    ground_classes: tuple = _f((), doc="class names that are traversable below "
-                                       "ground_max_height_m (the path itself; paper: none)")
+    project_stride_px: int = _f(2, lo=1, hi=8, doc="project every n-th obstacle pixel in each "
+                                                   "direction (2: 8 mm apart at 5 m, far below "
+                                                   "the 0.1 m grid)")
     occlusion_filter: bool = _f(True, doc="do not project the far side of a depth edge that the "
                                           "slope pair and the dilation add to a group")
-    holes: bool = _f(False, doc="depth holes standing on the ground are obstacles (not in paper)")
+    holes: bool = _f(True, doc="depth holes standing on the ground are obstacles (paper: false)")
     hole_min_pixels: int = _f(150, lo=1, hi=100000)
-    hole_min_width_px: int = _f(5, lo=1, hi=200, doc="narrower holes are depth shadows at "
-                                                     "occlusion edges, not shiny objects")
-    hole_max_range_m: float = _f(0.0, lo=0.0, hi=50.0,
+    hole_min_width_px: int = _f(12, lo=1, hi=200, doc="narrower holes are depth shadows at "
+                                                      "occlusion edges, not shiny objects")
+    hole_max_range_m: float = _f(4.5, lo=0.0, hi=50.0,
                                  doc="a depth hole must stand on surface nearer than this (0 = "
                                      "max_range_m); at the range limit a hole is the far view")
-    hole_ignore_classes: tuple = _f((), doc="colour classes a depth hole may have without being "
-                                            "an obstacle besides the traversable ones (the "
-                                            "greenhouse cover: beyond the sensor's range)")
+    hole_ignore_classes: tuple = _f(("cover",), doc="colour classes a depth hole may have "
+                                                    "without being an obstacle besides the "
+                                                    "traversable ones (the greenhouse cover: "
+                                                    "beyond the sensor's range)")
     use_vehicle_pitch: bool = _f(False, doc="add the vehicle's pitch to the mount pitch")
+
+
+# The paper's decision (section 3.5) on our slope step: give these to RgbdPipelineConfig (or put
+# them in [perception.rgbd]) to run the faithful variant; the defaults above are the measured
+# best (docs/rgbd.md). The paper-literal slope adds slope_step_px = 1, depth_median_px = 0,
+# occlusion_filter = false.
+PAPER_RULE = {
+    "texture": "after-colour", "texture_scope": "suspected", "texture_undefined": True,
+    "contact_px": 1, "texture_contact_px": 0, "ground_max_height_m": 0.0, "ground_classes": (),
+    "bottom_grounded": False, "min_height_m": 0.0, "holes": False,
+}
 
 
 @dataclass
 class RgbdResult:
     """Everything one frame produced (for tools and tests; process() keeps only the points)."""
 
-    slope_deg: np.ndarray
+    slope_deg: np.ndarray | None  # None from process() (the fast path thresholds without it)
     suspected: np.ndarray
     surface: np.ndarray
     colour_class: np.ndarray      # int16, NOT_CLASSIFIED outside suspected, -1 undefined
@@ -129,7 +154,8 @@ class RgbdPipeline(Pipeline):
             from appliance import rgbd_model       # the file is read outside perception
             model = rgbd_model.load(o.model or None)
         self.model = model
-        self.colour = ColourClassifier(model.mixtures(o.colour_space), o.colour_threshold)
+        self.colour = ColourClassifier(model.mixtures(o.colour_space), o.colour_threshold,
+                                       o.colour_space, o.colour_lut_bits)
         self.traversable_idx = model.index(o.traversable)
         self.hole_ok_idx = sorted(set(self.traversable_idx) | set(model.index(o.hole_ignore_classes)))
         self.rule = Rule(tuple(self.traversable_idx), len(model.classes),
@@ -145,13 +171,15 @@ class RgbdPipeline(Pipeline):
 
     # ------------------------------------------------------------------------------------------
     def process(self, inputs: SensorInputs) -> Detections:
-        r = self.analyse(inputs)
+        r = self.analyse(inputs, detail=False)
         return Detections(points_xy=r.points_xy, debug={
             "suspected_px": int(r.suspected.sum()), "obstacle_px": int(r.obstacles.sum()),
             "groups_colour": r.groups_colour, "groups_texture": r.groups_texture,
             "groups_holes": r.groups_holes, "texture_ran": r.texture_class is not None})
 
-    def analyse(self, inputs: SensorInputs) -> RgbdResult:
+    def analyse(self, inputs: SensorInputs, detail: bool = True) -> RgbdResult:
+        """One frame, every intermediate map in the result; ``detail=False`` (process()) skips
+        the slope map in degrees, which the decision does not need."""
         o: RgbdPipelineConfig = self.options
         fr = inputs.rgbd
         color, depth = fr.color, fr.depth_m
@@ -169,28 +197,38 @@ class RgbdPipeline(Pipeline):
             depth_s = np.where(zf > 0, cv2.medianBlur(zf, o.depth_median_px), np.float32(0))
         else:
             depth_s = depth
-        slope = slope_map(depth_s, cam.fy, cam.cy, pitch, lo, hi, o.slope_step_px)
-        sus, surface = suspected_map(slope, o.slope_threshold_deg, o.dilate_px,
-                                     o.morphology == "close")
+        steep, level = steep_map(depth_s, cam.fy, cam.cy, pitch, lo, hi, o.slope_step_px,
+                                 o.slope_threshold_deg)
+        sus, surface = suspected_from(steep, level, o.dilate_px, o.morphology == "close")
+        slope = slope_map(depth_s, cam.fy, cam.cy, pitch, lo, hi, o.slope_step_px) \
+            if detail else None
         height = None
-        if o.min_height_m > 0:
+        if o.min_height_m > 0 or o.ground_max_height_m > 0:
             height = height_map(depth_s, cam.fy, cam.cy, pitch, mount.z_m)
         if o.ground_max_height_m > 0:
             # our addition: bush tops are level too, but an obstacle stands on the ground
-            if height is None:
-                height = height_map(depth_s, cam.fy, cam.cy, pitch, mount.z_m)
             surface &= height < np.float32(o.ground_max_height_m)
 
-        # 2. colour classes of the suspected pixels
-        cmap = np.full(sus.shape, NOT_CLASSIFIED, np.int16)
-        cmap[sus] = self.colour.classify(colour_features(color[sus], o.colour_space))
-        d = decide(sus, surface, cmap, None, self.rule, height)
+        # 2. colour classes of the suspected pixels (the whole frame through the lookup table:
+        # one gather per pixel is cheaper than picking the suspected ones out)
+        cfull = None
+        if o.colour_lut_bits:
+            cfull = self.colour.classify_image(color)
+            cmap = np.where(sus, cfull, np.int16(NOT_CLASSIFIED))
+        else:
+            cmap = np.full(sus.shape, NOT_CLASSIFIED, np.int16)
+            cmap[sus] = self.colour.classify(colour_features(color[sus], o.colour_space))
 
-        # 3. texture
+        # 3. texture, and 4. the decision
         tmap = None
-        if o.texture == "always" or (o.texture == "after-colour" and d.n_colour > 0):
+        if o.texture == "always":
             tmap = self._texture_map(color, sus)
             d = decide(sus, surface, cmap, tmap, self.rule, height)
+        else:
+            d = decide(sus, surface, cmap, None, self.rule, height)
+            if o.texture == "after-colour" and d.n_colour > 0:
+                tmap = self._texture_map(color, sus)
+                d = decide(sus, surface, cmap, tmap, self.rule, height)
         col_obs, tex_obs, n_col, n_tex = d.colour, d.texture, d.n_colour, d.n_texture
 
         obs = col_obs | tex_obs if tex_obs is not None else col_obs.copy()
@@ -204,13 +242,14 @@ class RgbdPipeline(Pipeline):
             zmin = cv2.erode(zf, np.ones((k, max(o.dilate_px, 3)), np.uint8))
             with np.errstate(over="ignore", invalid="ignore"):
                 proj = obs & (zf <= zmin * np.float32(1.1))
-        pts = self._points(depth, proj, cam, mount, lo, hi)
+        pts = self._points(depth, proj, cam, mount, lo, hi, o.project_stride_px)
 
         # our addition: shiny surfaces return no depth at all
         hole_obs = None
         n_holes = 0
         if o.holes:
-            hole_obs, n_holes, hpts = self._holes(color, depth, surface, cam, mount, pitch, lo, hi)
+            hole_obs, n_holes, hpts = self._holes(color, depth, surface, cam, mount, pitch, lo, hi,
+                                                  cfull)
             if len(hpts):
                 pts = np.concatenate([pts, hpts])
             obs = obs | hole_obs
@@ -220,18 +259,30 @@ class RgbdPipeline(Pipeline):
     # ------------------------------------------------------------------------------------------
     def _texture_map(self, color: np.ndarray, sus: np.ndarray) -> np.ndarray:
         o: RgbdPipelineConfig = self.options
-        tmap = np.full(sus.shape, NOT_CLASSIFIED, np.int16)
         if not sus.any():
-            return tmap
-        widx, _, _ = window_index(sus.shape, o.texture_window_px)
-        wanted = np.unique(widx[sus])
+            return np.full(sus.shape, NOT_CLASSIFIED, np.int16)
+        win = o.texture_window_px
+        h, w = sus.shape
+        widx, ny, nx = window_index(sus.shape, win)
+        nw = ny * nx
+        if h % win == 0 and w % win == 0:
+            # suspected pixels per window: an area resize of the mask (exact for whole windows)
+            # (x255: one suspected pixel of 400 still rounds to a non-zero mean)
+            frac = cv2.resize(sus.view(np.uint8) * np.uint8(255), (nx, ny),
+                              interpolation=cv2.INTER_AREA)
+            wanted = np.flatnonzero(frac.ravel() > 0)
+        else:
+            wanted = np.flatnonzero(np.bincount(widx[sus], minlength=nw))
         codes = lbp_codes(to_grey(color))
-        hists = window_histograms(codes, o.texture_window_px, wanted)
-        per_window = np.full(hists.shape[0], NOT_CLASSIFIED, np.int16)
+        hists = window_histograms(codes, win, None if len(wanted) > nw // 2 else wanted)
+        per_window = np.full(nw, NOT_CLASSIFIED, np.int16)
         per_window[wanted] = classify_histograms(hists[wanted], self.model.lbp,
                                                  o.texture_threshold)
-        tmap[sus] = per_window[widx[sus]]
-        return tmap
+        if h % win == 0 and w % win == 0:
+            full = cv2.resize(per_window.reshape(ny, nx), (w, h), interpolation=cv2.INTER_NEAREST)
+        else:
+            full = per_window[widx]
+        return np.where(sus, full, np.int16(NOT_CLASSIFIED))
 
     @staticmethod
     def _to_vehicle(u, v, z, cam, mount) -> np.ndarray:
@@ -240,8 +291,12 @@ class RgbdPipeline(Pipeline):
         p = np.stack([x, y, z], axis=1).astype(np.float64)
         return (p @ mount.camera_to_vehicle().T + mount.position)[:, :2].astype(np.float32)
 
-    def _points(self, depth, mask, cam, mount, lo, hi) -> np.ndarray:
-        v, u = np.nonzero(mask)
+    def _points(self, depth, mask, cam, mount, lo, hi, stride: int = 1) -> np.ndarray:
+        if stride > 1:
+            v, u = np.nonzero(mask[::stride, ::stride])
+            v, u = v * stride, u * stride
+        else:
+            v, u = np.nonzero(mask)
         z = depth[v, u]
         ok = (z >= lo) & (z <= hi)
         if not ok.any():
@@ -249,7 +304,7 @@ class RgbdPipeline(Pipeline):
         return self._to_vehicle(u[ok].astype(np.float32), v[ok].astype(np.float32), z[ok],
                                 cam, mount)
 
-    def _holes(self, color, depth, surface, cam, mount, pitch, lo, hi):
+    def _holes(self, color, depth, surface, cam, mount, pitch, lo, hi, cfull=None):
         """Depth holes standing on the ground: a connected region of no depth of at least
         ``hole_min_pixels``, with surface right below it, whose colour is of no traversable
         class. Its range comes from where its bottom pixels' rays meet the ground plane of the
@@ -260,8 +315,11 @@ class RgbdPipeline(Pipeline):
             # ground at the range limit under a hole: that is the view beyond the range (the
             # far end of the path, the cover), not a shiny obstacle standing in range
             surface = surface & (depth < np.float32(o.hole_max_range_m))
-        cmap = np.full(hole.shape, NOT_CLASSIFIED, np.int16)
-        cmap[hole] = self.colour.classify(colour_features(color[hole], o.colour_space))
+        if cfull is not None:
+            cmap = np.where(hole, cfull, np.int16(NOT_CLASSIFIED))
+        else:
+            cmap = np.full(hole.shape, NOT_CLASSIFIED, np.int16)
+            cmap[hole] = self.colour.classify(colour_features(color[hole], o.colour_space))
         cand = hole & not_traversable(cmap, self.hole_ok_idx)
         # holes are thin at depth edges: open the mask so only solid regions remain
         cand = cv2.morphologyEx(cand.view(np.uint8), cv2.MORPH_OPEN,
@@ -271,9 +329,9 @@ class RgbdPipeline(Pipeline):
             return mask, 0, np.zeros((0, 2), np.float32)
         # bottom pixel of each column of the mask: its ray meets the ground at the contact
         h = mask.shape[0]
-        rows = np.where(mask, np.arange(h)[:, None], -1).max(0)
-        u = np.nonzero(rows >= 0)[0]
-        v = rows[u]
+        anyc = mask.any(0)
+        u = np.nonzero(anyc)[0]
+        v = h - 1 - np.argmax(mask[::-1, u], axis=0)
         ang = np.arctan((v - cam.cy) / cam.fy) + pitch           # below the horizontal
         okg = ang > math.radians(0.5)
         u, v, ang = u[okg], v[okg], ang[okg]

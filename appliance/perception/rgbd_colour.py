@@ -77,13 +77,76 @@ def mahalanobis(z: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> np.ndarray:
     return np.sqrt(np.einsum("ni,ij,nj->n", d, ci, d))
 
 
-class ColourClassifier:
-    """Nearest class by Mahalanobis distance under a threshold; precomputes the whiteners."""
+_LUT_CACHE: dict[tuple, np.ndarray] = {}
 
-    def __init__(self, mixtures: list[GaussianMixture], threshold: float):
+
+class ColourClassifier:
+    """Nearest class by Mahalanobis distance under a threshold; precomputes the whiteners.
+
+    With ``space`` and ``lut_bits`` (5..8) it also builds a lookup table over BGR quantised to
+    ``lut_bits`` per channel, each cell classified at its centre colour: classify_image() is then
+    one gather per pixel in any colour space (Lab included). 8 bits: every colour has its own
+    cell, so the table is exact (16 MB, 1-3 s to build once per model/space/threshold, cached
+    for the process). 7 bits (2 MB, 8x faster to build): a cell spans 2 levels, so a colour
+    within the quantisation error of the threshold or of a class boundary can differ from the
+    exact distance (a tight class such as the greenhouse bush has ~0.5 distance units per level;
+    test)."""
+
+    def __init__(self, mixtures: list[GaussianMixture], threshold: float,
+                 space: str | None = None, lut_bits: int = 0):
         self.threshold = float(threshold)
         self._means = [m.means.astype(np.float32) for m in mixtures]
         self._w = [m.whiteners().astype(np.float32) for m in mixtures]
+        self.space = space
+        self.lut_bits = int(lut_bits)
+        self._lut = None
+        if self.lut_bits:
+            if space is None or not 5 <= self.lut_bits <= 8:
+                raise ValueError("a colour lookup table needs a colour space and 5..8 bits")
+            key = (space, self.lut_bits, self.threshold,
+                   tuple(np.concatenate([m.ravel() for m in self._means]).tolist()),
+                   tuple(np.concatenate([w.ravel() for w in self._w]).tolist()))
+            lut = _LUT_CACHE.get(key)
+            if lut is None:
+                lut = self._build_lut()
+                if len(_LUT_CACHE) > 8:
+                    _LUT_CACHE.clear()
+                _LUT_CACHE[key] = lut
+            self._lut = lut
+
+    def _build_lut(self) -> np.ndarray:
+        bits = self.lut_bits
+        n = 1 << bits
+        step = 256 // n
+        centre = (np.arange(n, dtype=np.float32) * step + (step - 1) / 2.0).astype(np.float32)
+        lut = np.empty(n ** 3, np.int8)
+        gr, rr = np.meshgrid(centre, centre, indexing="ij")
+        gr, rr = gr.ravel(), rr.ravel()
+        per = max(1, (1 << 18) // (n * n))          # blue planes per chunk: bounded memory
+        for b0 in range(0, n, per):
+            bs = centre[b0:b0 + per]
+            bgr = np.stack([np.repeat(bs, n * n), np.tile(gr, len(bs)), np.tile(rr, len(bs))],
+                           axis=1)
+            lut[b0 * n * n:(b0 + len(bs)) * n * n] = self.classify(colour_features(bgr,
+                                                                                 self.space))
+        return lut
+
+    def classify_image(self, bgr: np.ndarray) -> np.ndarray:
+        """HxWx3 uint8 BGR -> HxW int16 classes through the lookup table."""
+        if self._lut is None:
+            img = np.asarray(bgr)
+            return self.classify(colour_features(img.reshape(-1, 3), self.space or "rgb")) \
+                .reshape(img.shape[:2])
+        bits = self.lut_bits
+        c = np.asarray(bgr, np.uint8)
+        if bits < 8:
+            c = c >> np.uint8(8 - bits)
+        idx = c[..., 0].astype(np.int32)
+        idx <<= bits
+        idx |= c[..., 1]
+        idx <<= bits
+        idx |= c[..., 2]
+        return self._lut[idx].astype(np.int16)
 
     def distances(self, feats: np.ndarray) -> np.ndarray:
         """(N, 3) features -> (N, C) Mahalanobis distance to each class (min over components)."""

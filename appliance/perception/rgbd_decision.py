@@ -48,13 +48,18 @@ TALL_MIN_PX = 10        # pixels above min_height_m a group needs (one noisy pix
 
 def touching_ground(mask: np.ndarray, surface: np.ndarray, contact_px: int = 1) -> np.ndarray:
     """Pixels of ``mask`` with a ``surface`` pixel 1..contact_px rows below them."""
-    touch = np.zeros(mask.shape, bool)
-    h = mask.shape[0]
-    for k in range(1, max(1, contact_px) + 1):
-        if k >= h:
-            break
-        touch[:-k] |= mask[:-k] & surface[k:]
-    return touch
+    k = max(1, contact_px)
+    if k == 1:
+        touch = np.zeros(mask.shape, bool)
+        touch[:-1] = mask[:-1] & surface[1:]
+        return touch
+    # one dilation by a column kernel that looks 1..k rows down (anchor on its empty top cell)
+    kern = np.ones((k + 1, 1), np.uint8)
+    kern[0] = 0
+    below = cv2.dilate(surface.view(np.uint8) if surface.dtype == bool else
+                       surface.astype(np.uint8), kern, anchor=(0, 0),
+                       borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    return mask & below.view(bool)
 
 
 def obstacle_groups(candidate: np.ndarray, surface: np.ndarray, min_pixels: int = 30,
@@ -70,8 +75,12 @@ def obstacle_groups(candidate: np.ndarray, surface: np.ndarray, min_pixels: int 
     if open_px > 1:
         cand8 = cv2.morphologyEx(cand8, cv2.MORPH_OPEN, np.ones((open_px, open_px), np.uint8))
         candidate = cand8 > 0
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(cand8, connectivity=8)
-    keep = stats[:, cv2.CC_STAT_AREA] >= min_pixels
+    # labels only (the statistics of connectedComponentsWithStats cost 10x the labelling);
+    # the areas are one bincount
+    n, labels = cv2.connectedComponents(cand8, connectivity=8, ltype=cv2.CV_32S)
+    if n <= 1:
+        return np.zeros(candidate.shape, bool), 0
+    keep = np.bincount(labels[candidate], minlength=n) >= min_pixels   # areas
     keep[0] = False
     if not keep.any():
         return np.zeros(candidate.shape, bool), 0
@@ -83,9 +92,16 @@ def obstacle_groups(candidate: np.ndarray, surface: np.ndarray, min_pixels: int 
     keep &= grounded
     if tall is not None and keep.any():
         keep &= np.bincount(labels[tall & candidate], minlength=n)[:n] >= TALL_MIN_PX
-    if not keep.any():
+    keep[0] = False
+    ids = np.flatnonzero(keep)
+    if len(ids) == 0:
         return np.zeros(candidate.shape, bool), 0
-    return keep[labels], int(keep.sum())
+    if len(ids) <= 4:                  # a few groups: compares are cheaper than a gather
+        out = labels == ids[0]
+        for i in ids[1:]:
+            out |= labels == i
+        return out, len(ids)
+    return keep.view(np.uint8)[labels].view(bool), len(ids)
 
 
 def class_lut(traversable_idx, n_classes: int) -> np.ndarray:
@@ -96,6 +112,16 @@ def class_lut(traversable_idx, n_classes: int) -> np.ndarray:
         if 0 <= i < n_classes:
             lut[i + 2] = False
     return lut
+
+
+def _apply(lut: np.ndarray, class_map: np.ndarray) -> np.ndarray:
+    """lut[class_map + 2] as a bool map; OpenCV's 256-entry LUT when the classes fit a byte."""
+    if lut.size <= 256:
+        table = np.zeros(256, np.uint8)
+        table[:lut.size] = lut
+        idx = (class_map + np.int16(2)).astype(np.uint8)
+        return cv2.LUT(idx, table).view(bool)
+    return lut[class_map.astype(np.intp) + 2]
 
 
 def not_traversable(class_map: np.ndarray, traversable_idx: list[int]) -> np.ndarray:
@@ -142,15 +168,28 @@ class Decision:
 
 def _blocked(class_map: np.ndarray, rule: Rule, low: np.ndarray | None,
              undefined_blocks: bool = True) -> np.ndarray:
-    """Pixels whose class says 'not traversable' under the rule."""
+    """Pixels whose class says 'not traversable' under the rule (a ground class at ground
+    height, ``low``, is traversable)."""
     lut = class_lut(rule.traversable, rule.n_classes)
     if not undefined_blocks:
         lut[UNDEFINED + 2] = False
+    ground = low is not None and bool(rule.ground_classes)
+    lut_low = lut.copy()
+    if ground:
+        lut_low[[g + 2 for g in rule.ground_classes]] = False
+    if rule.n_classes + 2 <= 128:
+        # one byte per pixel: class + 2 in the low 7 bits, 'at ground height' in the top bit,
+        # and one OpenCV table lookup
+        table = np.zeros(256, np.uint8)
+        table[:lut.size] = lut
+        table[128:128 + lut.size] = lut_low
+        idx = (class_map + np.int16(2)).astype(np.uint8)
+        if ground:
+            idx |= low.view(np.uint8) << 7
+        return cv2.LUT(idx, table).view(bool)
     out = lut[class_map.astype(np.intp) + 2]
-    if low is not None and rule.ground_classes:
-        gl = np.zeros(rule.n_classes + 2, bool)
-        gl[[g + 2 for g in rule.ground_classes]] = True
-        out &= ~(gl[class_map.astype(np.intp) + 2] & low)
+    if ground:
+        out &= ~low | lut_low[class_map.astype(np.intp) + 2]
     return out
 
 

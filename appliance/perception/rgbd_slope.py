@@ -58,12 +58,52 @@ def slope_map(depth_m: np.ndarray, fy: float, cy: float, pitch_rad: float,
     return out
 
 
+_ROW_CACHE: dict = {}
+
+
+def _row_factors(height: int, fy: float, cy: float, pitch_rad: float):
+    """(R sin b / z, R cos b / z) per row as float32 columns, cached (same camera every frame)."""
+    key = (height, float(fy), float(cy), float(pitch_rad))
+    f = _ROW_CACHE.get(key)
+    if f is None:
+        b, sec = vertical_angles(height, fy, cy, pitch_rad)
+        f = ((np.sin(b) * sec).astype(np.float32)[:, None],
+             (np.cos(b) * sec).astype(np.float32)[:, None])
+        if len(_ROW_CACHE) > 64:
+            _ROW_CACHE.clear()
+        _ROW_CACHE[key] = f
+    return f
+
+
+def steep_map(depth_m: np.ndarray, fy: float, cy: float, pitch_rad: float,
+              min_range_m: float = 0.5, max_range_m: float = 5.0, step_px: int = 1,
+              threshold_deg: float = 40.0) -> tuple[np.ndarray, np.ndarray]:
+    """The thresholded eq. 4 without the angles (the fast path of the pipeline): (steep, level)
+    bool maps, steep = slope_map(...) > threshold_deg, level = slope_map(...) <= threshold_deg,
+    both False where the slope is undefined. |theta| > t  <=>  |drop| > tan(t) |run|."""
+    z = np.asarray(depth_m, dtype=np.float32)
+    s = step_px
+    sb, cb = _row_factors(z.shape[0], fy, cy, pitch_rad)
+    down = z * sb
+    fwd = z * cb
+    dd = np.abs(down[:-s] - down[s:])
+    df = np.abs(fwd[:-s] - fwd[s:])
+    df *= np.float32(np.tan(np.radians(threshold_deg)))
+    valid = (z >= np.float32(min_range_m)) & (z <= np.float32(max_range_m))
+    ok = valid[:-s] & valid[s:]
+    steep = np.zeros(z.shape, bool)
+    level = np.zeros(z.shape, bool)
+    gt = dd > df
+    np.logical_and(ok, gt, out=steep[:-s])
+    np.logical_and(ok, ~gt, out=level[:-s])
+    return steep, level
+
+
 def height_map(depth_m: np.ndarray, fy: float, cy: float, pitch_rad: float,
                camera_height_m: float) -> np.ndarray:
     """HxW float32 height of each depth pixel above the ground plane under the mount (level
     ground assumed): camera height minus the point's drop R sin b."""
-    b, sec = vertical_angles(depth_m.shape[0], fy, cy, pitch_rad)
-    sb = (np.sin(b) * sec).astype(np.float32)[:, None]
+    sb, _ = _row_factors(depth_m.shape[0], fy, cy, pitch_rad)
     return np.float32(camera_height_m) - np.asarray(depth_m, np.float32) * sb
 
 
@@ -75,6 +115,13 @@ def suspected_map(slope_deg: np.ndarray, threshold_deg: float = 40.0,
     with np.errstate(invalid="ignore"):
         sus = slope_deg > np.float32(threshold_deg)
         low = slope_deg <= np.float32(threshold_deg)
+    return suspected_from(sus, low, dilate_px, close)
+
+
+def suspected_from(steep: np.ndarray, level: np.ndarray, dilate_px: int = 3,
+                   close: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """suspected_map from the steep / level maps of steep_map."""
+    sus, low = steep, level
     if dilate_px > 1:
         k = np.ones((dilate_px, dilate_px), np.uint8)
         if close:       # dilation then erosion: closes the gaps without growing the region

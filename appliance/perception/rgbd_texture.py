@@ -53,6 +53,17 @@ def window_index(shape: tuple[int, int], window: int) -> tuple[np.ndarray, int, 
     return _BLOCK_CACHE[key]
 
 
+_BASE_CACHE: dict[tuple[int, int, int], np.ndarray] = {}
+
+
+def _window_base(shape: tuple[int, int], window: int) -> np.ndarray:
+    """window number * 256 per pixel (int32), cached."""
+    key = (shape[0], shape[1], window)
+    if key not in _BASE_CACHE:
+        _BASE_CACHE[key] = window_index(shape, window)[0] * np.int32(256)
+    return _BASE_CACHE[key]
+
+
 def window_histograms(codes: np.ndarray, window: int = 20,
                       windows: np.ndarray | None = None) -> np.ndarray:
     """Eq. 7 per window, normalised: (n_windows, 256) float32 (rows of empty windows are 0).
@@ -60,7 +71,7 @@ def window_histograms(codes: np.ndarray, window: int = 20,
     idx, ny, nx = window_index(codes.shape, window)
     n = ny * nx
     if windows is None:
-        flat = idx.ravel().astype(np.int64) * 256 + codes.ravel()
+        flat = (_window_base(codes.shape, window) + codes).ravel()
     else:
         want = np.zeros(n, bool)
         want[windows] = True
@@ -87,14 +98,23 @@ def chi_square(t: np.ndarray, l: np.ndarray) -> np.ndarray:
 
 
 def classify_histograms(hists: np.ndarray, models: np.ndarray, threshold: float = 0.5) -> np.ndarray:
-    """(N, 256) window histograms vs (C, 256) class histograms -> (N,) int16 class or UNDEFINED."""
+    """(N, 256) window histograms vs (C, 256) class histograms -> (N,) int16 class or UNDEFINED.
+
+    Eq. 8 per class in float32 without a masked divide: a class bin of 0 is raised to 1e-12, so
+    a bin empty in both gives 0/1e-12 = 0 and any other bin is unchanged to float32 precision."""
     if len(hists) == 0 or len(models) == 0:
         return np.full(len(hists), UNDEFINED, np.int16)
-    h = np.asarray(hists, np.float32)[:, None, :]
-    m = np.asarray(models, np.float32)[None, :, :]
-    s = h + m
-    d = np.sum(np.divide((h - m) ** 2, s, out=np.zeros(np.broadcast(h, m).shape, np.float32),
-                         where=s > 0), axis=-1)
+    h = np.asarray(hists, np.float32)
+    d = np.empty((h.shape[0], len(models)), np.float32)
+    num = np.empty_like(h)
+    den = np.empty_like(h)
+    for c, m in enumerate(np.asarray(models, np.float32)):
+        m = np.maximum(m, np.float32(1e-12))
+        np.subtract(h, m, out=num)
+        np.multiply(num, num, out=num)
+        np.add(h, m, out=den)
+        np.divide(num, den, out=num)
+        d[:, c] = num.sum(axis=1)
     idx = np.argmin(d, axis=1)
     best = d[np.arange(len(d)), idx]
     return np.where(best < threshold, idx, UNDEFINED).astype(np.int16)
