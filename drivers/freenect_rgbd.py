@@ -442,17 +442,64 @@ def _child(index: int, max_fps: float, pair_tolerance_ms: float, ring_fd: int) -
             pass
 
 
+def stream_check(seconds: float = 5.0, **kw) -> dict:
+    """Run the driver alone for ``seconds`` (a real Kinect, or ``fakenect=DUMP``) and measure:
+    pairs per second, the age of each pair when published (helper arrival -> driver), the CPU
+    time per pair of the daemon side (this process) and of the helper (reaped children)."""
+    import resource
+    from hal.clock import MonotonicClock
+    d = FreenectDepthCamera("rgbd", MonotonicClock(), **kw)
+    ages, publish = [], d._publish
+
+    def timed(sample):
+        ages.append((d.clock.now_ns() - sample.stamp_ns) / 1e6)
+        publish(sample)
+
+    d._publish = timed
+    ru0, cpu0, t0 = resource.getrusage(resource.RUSAGE_CHILDREN), time.process_time(), \
+        time.monotonic()
+    d.open()
+    d.start_acquisition()
+    time.sleep(seconds)
+    ok, msg = d.selftest()
+    d.close()
+    wall, cpu = time.monotonic() - t0, time.process_time() - cpu0
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    helper = (ru.ru_utime + ru.ru_stime) - (ru0.ru_utime + ru0.ru_stime)
+    n = max(1, len(ages))
+    a = np.array(ages or [np.nan])
+    return {"seconds": round(wall, 2), "pairs": len(ages), "pairs_per_s": round(len(ages) / wall,
+                                                                               2),
+            "publish_age_ms": {"p50": round(float(np.median(a)), 2),
+                               "max": round(float(np.max(a)), 2)},
+            "driver_cpu_ms_per_pair": round(cpu * 1e3 / n, 2),
+            "helper_cpu_ms_per_pair": round(helper * 1e3 / n, 2),
+            "counters": dict(d.counters), "selftest": [ok, msg]}
+
+
 def main(argv=None) -> int:
     import argparse
-    ap = argparse.ArgumentParser(prog="python -m drivers.freenect_rgbd")
+    import json
+    ap = argparse.ArgumentParser(prog="python -m drivers.freenect_rgbd",
+                                 description="--stream: check a Kinect (or a fakenect dump) "
+                                             "streams through the driver, with figures")
     ap.add_argument("--child", action="store_true", help="run as the driver's helper process")
+    ap.add_argument("--stream", action="store_true", help="run the driver alone, print figures")
+    ap.add_argument("--seconds", type=float, default=5.0)
+    ap.add_argument("--fakenect", default="", help="with --stream: play this dump")
+    ap.add_argument("--preload", default="", help="with --fakenect: the stub library")
     ap.add_argument("--index", type=int, default=0)
     ap.add_argument("--max-fps", type=float, default=15.0)
     ap.add_argument("--pair-tolerance-ms", type=float, default=40.0)
-    ap.add_argument("--ring-fd", type=int, required=True, help="the frame ring (a memfd)")
+    ap.add_argument("--ring-fd", type=int, help="the frame ring (a memfd; --child)")
     a = ap.parse_args(argv)
-    if not a.child:
-        ap.error("this module is the driver's helper; run it with --child (the driver does)")
+    if a.stream:
+        print(json.dumps(stream_check(a.seconds, index=a.index, max_fps=a.max_fps,
+                                      pair_tolerance_ms=a.pair_tolerance_ms,
+                                      fakenect=a.fakenect, fakenect_preload=a.preload)))
+        return 0
+    if not a.child or a.ring_fd is None:
+        ap.error("give --stream, or --child --ring-fd N (the driver runs its helper so)")
     return _child(a.index, a.max_fps, a.pair_tolerance_ms, a.ring_fd)
 
 

@@ -262,3 +262,16 @@ def test_fieldguard_run_with_a_hardware_config(greenhouse_dump, stub, tmp_path):
                         "0.7"], capture_output=True, text=True, timeout=60, cwd=str(tmp_path))
     assert r.returncode == 0, r.stdout + r.stderr[-2000:]
     assert "PASS  rgbd" in r.stdout and "streaming registered depth + colour" in r.stdout
+
+
+def test_stream_check_reports_figures(tmp_path, stub):
+    """`python -m drivers.freenect_rgbd --stream` (the technician's check, and the figures in
+    docs/hardware.md) on a 30 fps dump: throttled to 15 pairs/s, every pair timed."""
+    from drivers.freenect_rgbd import stream_check
+    ramp_dump(tmp_path / "dump", frames=30, fps=30.0)
+    r = stream_check(1.2, fakenect=str(tmp_path / "dump"), fakenect_preload=str(stub))
+    assert r["pairs"] >= 5 and r["counters"]["throttled"] >= 5
+    assert r["pairs_per_s"] <= 15.5
+    assert 0 <= r["publish_age_ms"]["p50"] <= r["publish_age_ms"]["max"] < 200
+    assert r["driver_cpu_ms_per_pair"] > 0 and r["helper_cpu_ms_per_pair"] > 0
+    assert r["selftest"][0]

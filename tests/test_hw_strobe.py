@@ -301,3 +301,58 @@ def test_daemon_switches_the_strobe_when_the_scene_goes_dark(tmp_path):
         emu.stop()
         os.close(fd)
         pair.kill()
+
+
+def test_day_night_switch_rules_without_hardware():
+    """The switch on its own (fake camera, controller and cycle results): a lit frame is never
+    used as the ambient, a probe waits for an unlit frame stamped after the controller confirmed
+    the strobe off, and a probe that gets none puts the strobe back on."""
+    from types import SimpleNamespace as NS
+
+    from drivers.strobe_serial import DayNightSwitch
+
+    class Ctl:
+        def __init__(self):
+            self.want, self.sample = False, {"stamp_ns": 0, "strobe": False}
+
+        def set_strobe(self, on):
+            self.want = on
+
+        def newest(self):
+            return self.sample
+
+    cam, ctl = NS(illumination=DAY), Ctl()
+    sw = DayNightSwitch(cam, ctl, night_below=35, day_above=60, probe_s=1.0,
+                        probe_timeout_s=0.5)
+    ms = 1_000_000
+
+    def cycle(t_ms, level=None, label=DAY, frame_ms=None, strobe=None):
+        if strobe is not None:
+            ctl.sample = {"stamp_ns": t_ms * ms, "strobe": strobe}
+        img = None if level is None else np.full((16, 16, 3), level, np.uint8)
+        fr = None if img is None else NS(left=img, illumination=label,
+                                         stamp_ns=(t_ms if frame_ms is None else frame_ms) * ms)
+        sw(NS(stamp_ns=t_ms * ms, inputs=NS(stereo=fr)))
+
+    cycle(0, 100)
+    assert sw.mode == DAY and not ctl.want
+    cycle(100, 20)                                       # dark: strobe on
+    assert sw.mode == NIGHT and ctl.want and sw.switches == 1
+    cycle(200, 140, NIGHT, strobe=True)                  # lit frames are not the ambient
+    assert cam.illumination == NIGHT and sw.ambient == pytest.approx(20)
+    cycle(1150, 140, NIGHT)                              # probe due: strobe off
+    assert not ctl.want and sw.probes == 1
+    cycle(1250, 140, DAY, frame_ms=1140)                 # a frame from before the probe: unused
+    assert sw._probe_since is not None
+    cycle(1350, 25, DAY, frame_ms=1340, strobe=False)    # controller confirms off at 1350
+    assert sw._probe_since is not None                  # ... so 1340 is not proof of unlit
+    cycle(1450, 25, DAY, frame_ms=1445)                  # unlit, measured: still dark
+    assert sw._probe_since is None and ctl.want and sw.mode == NIGHT
+    assert sw.ambient == pytest.approx(25)
+    cycle(2500, 140, NIGHT, strobe=True)                 # next probe ...
+    assert sw.probes == 2 and not ctl.want
+    cycle(2700, None)
+    cycle(3100, None)                                    # ... no unlit frame within 0.5 s
+    assert ctl.want and sw._probe_since is None and sw.mode == NIGHT
+    with pytest.raises(ValueError):
+        DayNightSwitch(cam, ctl, night_below=60, day_above=60)

@@ -114,25 +114,30 @@ def read_frame(path: str | Path) -> np.ndarray:
 
 def sim_dump(out: str | Path, scene: str = "greenhouse", frames: int = 20, seed: int = 0,
              fps: float = 15.0, speed_mps: float | None = None, gap_after: int | None = None,
-             gap_s: float = 0.0) -> dict:
+             gap_s: float = 0.0, repeat: int = 1) -> dict:
     """A dump of ``frames`` consecutive RGB-D frames of the simulated field (the vehicle driving
     on at ``fps``). ``gap_after=N, gap_s=S``: the recorded clock jumps S seconds after frame N
-    (the device goes silent that long). Returns {"dump", "frames", "calibration"}."""
+    (the device goes silent that long). ``repeat``: the rendered frames written that many times
+    over (long dumps for benchmarks without rendering more). Returns {"dump", "frames",
+    "calibration"}."""
     from drivers.sim.field import SimField
     from hal.types import GateState
     f = SimField(scene=scene, seed=seed, sensors=("rgbd",), start_speed_mps=speed_mps)
     cal = f.depth_calibration
     if (cal.camera.width, cal.camera.height) != (WIDTH, HEIGHT):
         raise ValueError("the simulated depth camera is not 640x480")
+    rendered = []
+    for i in range(frames):
+        if i:
+            f.step(1.0 / fps, GateState.CLEAR)
+        fr = f.render_rgbd(0, i + 1)
+        rendered.append((fr.color, depth_to_mm(fr.depth_m, cal.depth_unit_m)))
     with DumpWriter(out, fps=fps) as w:
-        for i in range(frames):
-            if i:
-                f.step(1.0 / fps, GateState.CLEAR)
-            fr = f.render_rgbd(0, i + 1)
-            w.add(fr.color, depth_to_mm(fr.depth_m, cal.depth_unit_m),
-                  gap_s=gap_s if gap_after is not None and i == gap_after else 0.0)
+        for k in range(max(1, repeat) * frames):
+            w.add(*rendered[k % frames],
+                  gap_s=gap_s if gap_after is not None and k == gap_after else 0.0)
     c = cal.camera
-    return {"dump": str(out), "frames": frames,
+    return {"dump": str(out), "frames": max(1, repeat) * frames,
             "calibration": {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy,
                             "depth_unit_m": cal.depth_unit_m, "min_range_m": cal.min_range_m,
                             "max_range_m": cal.max_range_m, "mount_x_m": cal.mount.x_m,
@@ -225,11 +230,12 @@ def main(argv=None) -> int:
     ap.add_argument("--fps", type=float, default=15.0)
     ap.add_argument("--gap-after", type=int, help="recorded clock jumps after this frame")
     ap.add_argument("--gap-s", type=float, default=0.0)
+    ap.add_argument("--repeat", type=int, default=1, help="write the frames this many times")
     ap.add_argument("--out", required=True)
     ap.add_argument("--stub-dir", help="also build the preload stub here; print the environment")
     a = ap.parse_args(argv)
     info = sim_dump(a.out, a.scene, a.frames, a.seed, a.fps, gap_after=a.gap_after,
-                    gap_s=a.gap_s)
+                    gap_s=a.gap_s, repeat=a.repeat)
     if a.stub_dir:
         stub = build_stub(a.stub_dir)
         env = fakenect_env(a.out, stub, base={})
