@@ -14,10 +14,10 @@ def test_greenhouse_sprayer_stops_for_the_crate_on_its_path():
         cfg,
         # the greenhouse sprayer: 1.2 m long, 0.8 m wide; the bushes start 0.6 m off the centre
         zones=dataclasses.replace(cfg.zones, front_x_m=1.1, half_width_m=0.5),
-        # colour alone: with the paper's texture classifier on, leaves overhanging the path give
-        # texture false positives ~1.4 m ahead (docs/rgbd.md), which would also stop it, earlier
+        # the default rgbd options (texture on every frame, depth holes): the paper's rule with
+        # texture would stop it ~1.4 m ahead for leaves overhanging the path (docs/rgbd.md)
         perception=dataclasses.replace(cfg.perception, pipelines=("rgbd",), extra=types.MappingProxyType(
-            {"rgbd": RgbdPipelineConfig(texture="off")})))
+            {"rgbd": RgbdPipelineConfig()})))
     d = Daemon(sim_config(cfg, "greenhouse"), mode="sim", pace=0.0, serve_status=False)
     d.start()
     log = []

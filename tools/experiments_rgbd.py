@@ -8,15 +8,18 @@
         an obstacle. The rectangles are written in the documented annotation format and the
         model is trained from them by `fieldguard train-classes` like any hand-made file.
     python tools/experiments_rgbd.py tables RUN [RUN...] [--step N] [--model M] [--json F]
+                                            [--rule paper|ours|both]
         the protocol of the paper's Tables 2-4 on test runs (other seeds): per colour space,
-        colour alone and colour + texture, single-frame decisions (grid occupied_at = 1,
-        decay = 0), scored with appliance.evaluation.score_frame: obstacles detected at least
-        once out of those present, frame-level TP (detected obstacle-frames), FN (missed ones),
-        FP (connected groups of false-positive cells), recall, precision = TP / (TP + FP).
-    python tools/experiments_rgbd.py variants RUN [RUN...] [--step N]
-        failure modes and future work against the baseline (RGB, colour + texture): texture
-        always, depth holes as obstacles, colour/depth misalignment (depth shifted by k px),
-        multi-frame voting (the grid's two-hit rule), mixture-of-Gaussians colour models.
+        colour alone and colour + texture, with the paper's decision (PAPER_RULE) and with ours
+        (the defaults), single-frame decisions (grid occupied_at = 1, decay = 0), scored with
+        appliance.evaluation.score_frame: obstacles detected at least once out of those
+        present, frame-level TP (detected obstacle-frames), FN (missed ones), FP (connected
+        groups of false-positive cells), recall, precision = TP / (TP + FP).
+    python tools/experiments_rgbd.py variants RUN [RUN...] [--step N] [--set NAME:k=v;k=v]
+        against the default (ours, RGB): each of our changes taken back in turn, the paper's
+        rule, failure modes (colour/depth misalignment: depth shifted by k px) and the paper's
+        future work (multi-frame voting: the grid's two-hit rule; mixture-of-Gaussians colour
+        models with --mog-model).
 """
 from __future__ import annotations
 
@@ -38,7 +41,7 @@ from appliance.config import GridConfig, default_config  # noqa: E402
 from appliance.evaluation import score_frame, zone_for_run  # noqa: E402
 from appliance.fusion import GridFusion  # noqa: E402
 from appliance.perception import SensorInputs  # noqa: E402
-from appliance.perception.rgbd import RgbdPipeline, RgbdPipelineConfig  # noqa: E402
+from appliance.perception.rgbd import PAPER_RULE, RgbdPipeline, RgbdPipelineConfig  # noqa: E402
 from appliance.perception.rgbd_colour import COLOUR_SPACES  # noqa: E402
 from drivers.runfolder import RunReader  # noqa: E402
 
@@ -249,10 +252,16 @@ def _model(a):
 def cmd_tables(a) -> int:
     model = _model(a)
     variants = {}
-    for space in COLOUR_SPACES:
-        variants[f"{space} colour"] = {"options": {"colour_space": space, "texture": "off"}}
-        variants[f"{space} colour+texture"] = {"options": {"colour_space": space,
-                                                            "texture": "after-colour"}}
+    rules = {"paper": dict(PAPER_RULE), "ours": {}}
+    for rule, base in rules.items():
+        if a.rule not in (rule, "both"):
+            continue
+        for space in COLOUR_SPACES:
+            # colour alone; colour + texture (the paper runs texture after colour, ours always)
+            variants[f"{rule}: {space} colour"] = {"options": {**base, "colour_space": space,
+                                                               "texture": "off"}}
+            variants[f"{rule}: {space} colour+texture"] = {"options": {**base,
+                                                                       "colour_space": space}}
     rows = run_variants(a.runs, variants, a.step, model)
     print_table(rows, f"Tables 2-4 protocol: {', '.join(a.runs)}, every {a.step} frame(s), "
                       f"single-frame decisions")
@@ -261,36 +270,67 @@ def cmd_tables(a) -> int:
     return 0
 
 
+def _parse_set(extra: str, base: dict) -> tuple[str, dict]:
+    name, _, kv = extra.partition(":")
+    opts = dict(base)
+    for item in kv.split(";"):
+        if not item.strip():
+            continue
+        k, _, v = item.partition("=")
+        try:
+            opts[k.strip()] = json.loads(v)
+        except ValueError:
+            opts[k.strip()] = v
+        if isinstance(opts[k.strip()], list):
+            opts[k.strip()] = tuple(opts[k.strip()])
+    return name, opts
+
+
 def cmd_variants(a) -> int:
     model = _model(a)
-    base = {"colour_space": "rgb", "texture": "after-colour"}
+    base: dict = {}                                 # the defaults: ours
     variants = {
-        "baseline (paper: rgb, colour+texture after colour)": {"options": base},
-        "texture always": {"options": {**base, "texture": "always"}},
-        "depth holes as obstacles": {"options": {**base, "holes": True}},
+        "default (ours)": {"options": base},
+        "paper's rule (PAPER_RULE), our slope": {"options": dict(PAPER_RULE)},
+        "paper-literal (PAPER_RULE, 1-row slope, no median, no occlusion filter)": {
+            "options": {**PAPER_RULE, "slope_step_px": 1, "depth_median_px": 0,
+                        "occlusion_filter": False}},
+        "- any level surface (ground_max_height_m = 0)": {
+            "options": {**base, "ground_max_height_m": 0.0}},
+        "- ground class not traversable (ground_classes = [])": {
+            "options": {**base, "ground_classes": ()}},
+        "- texture judges every suspected px (texture_scope = suspected)": {
+            "options": {**base, "texture_scope": "suspected"}},
+        "- undefined texture is evidence (texture_undefined = true)": {
+            "options": {**base, "texture_undefined": True}},
+        "- texture after colour only (texture = after-colour)": {
+            "options": {**base, "texture": "after-colour"}},
+        "- texture contact 3 rows (texture_contact_px = 0)": {
+            "options": {**base, "texture_contact_px": 0}},
+        "- no image-bottom grounding (bottom_grounded = false)": {
+            "options": {**base, "bottom_grounded": False}},
+        "- no minimum height (min_height_m = 0)": {"options": {**base, "min_height_m": 0.0}},
+        "- min height 0.10 m": {"options": {**base, "min_height_m": 0.10}},
+        "- no depth holes (holes = false)": {"options": {**base, "holes": False}},
+        "- contact 1 row (contact_px = 1)": {"options": {**base, "contact_px": 1}},
+        "colour only (texture = off)": {"options": {**base, "texture": "off"}},
+        "exact colour per pixel (colour_lut_bits = 0), every pixel projected": {
+            "options": {**base, "colour_lut_bits": 0, "project_stride_px": 1}},
         "misaligned depth +4 px": {"options": base, "shift_px": 4},
         "misaligned depth +8 px": {"options": base, "shift_px": 8},
-        "multi-frame voting (grid two-hit)": {"options": base,
-                                              "grid": {"occupied_at": 1.4, "decay": 0.5}},
+        "multi-frame voting (grid two-hit: occupied_at 1.4, decay 0.5)": {
+            "options": base, "grid": {"occupied_at": 1.4, "decay": 0.5}},
     }
     if a.mog_model:
-        variants["mixture of Gaussians colour"] = {"options": base,
-                                                   "model": rgbd_model.load(a.mog_model)}
+        variants["mixture of Gaussians colour (--mog-model)"] = {
+            "options": base, "model": rgbd_model.load(a.mog_model)}
+    if a.only:
+        variants = {k: v for k, v in variants.items() if any(o in k for o in a.only)}
     for extra in a.set or []:
-        name, _, kv = extra.partition(":")
-        opts = dict(base)
-        for item in kv.split(";"):
-            k, _, v = item.partition("=")
-            try:
-                opts[k] = json.loads(v)
-            except ValueError:
-                opts[k] = v
-            if isinstance(opts[k], list):
-                opts[k] = tuple(opts[k])
+        name, opts = _parse_set(extra, base)
         variants[name] = {"options": opts}
     rows = run_variants(a.runs, variants, a.step, model)
-    print_table(rows, f"Failure modes and future work: {', '.join(a.runs)}, every {a.step} "
-                      f"frame(s)")
+    print_table(rows, f"Variants: {', '.join(a.runs)}, every {a.step} frame(s)")
     if a.json:
         Path(a.json).write_text(json.dumps(rows, indent=1))
     return 0
@@ -314,7 +354,11 @@ def main(argv=None) -> int:
         if name == "variants":
             p.add_argument("--mog-model", default=None, help="a mixture model to compare")
             p.add_argument("--set", action="append",
-                           help="extra variant NAME:key=value;key=value on the baseline")
+                           help="extra variant NAME:key=value;key=value on the default")
+            p.add_argument("--only", action="append",
+                           help="run only the built-in variants whose name contains this")
+        else:
+            p.add_argument("--rule", default="both", choices=("paper", "ours", "both"))
         p.set_defaults(func=fn)
     a = ap.parse_args(argv)
     return a.func(a)
