@@ -273,7 +273,8 @@ def _ground_depth(calib, us, vs, roll: float, pitch: float, ground_m: float) -> 
 
 def ground_search_range(calib, box: tuple[int, int, int, int], nd: int, vehicle=None,
                         ground_slack_m: float = 0.3, pitch_slack_deg: float = 3.0,
-                        margin_px: int = 2, foot_row: int | None = None) -> tuple[int, int]:
+                        margin_px: int = 2, foot_row: int | None = None,
+                        seen_max_disp: float = 0.0) -> tuple[int, int]:
     """``(d_min, n)`` for a box (pixels of ``calib``'s image).
 
     Far end: disparities below ``d_min`` lie beyond the ground plane for every ray of the box,
@@ -285,7 +286,10 @@ def ground_search_range(calib, box: tuple[int, int, int, int], nd: int, vehicle=
     obstacle standing on the ground with its foot inside the region is no nearer than the
     ground at ``foot_row`` (vehicle pitched ``pitch_slack_deg`` nose-down, ground
     ``ground_slack_m`` higher); without it, or when that row does not see the ground, the
-    near end is ``nd`` (``min_depth_m``).
+    near end is ``nd`` (``min_depth_m``). ``seen_max_disp``: the largest disparity seen in the
+    box by another measurement (a coarse stereo pass); the near end is never below it, so an
+    obstacle whose foot is outside the region (an overhang, an unlit lower part) that the
+    coarse pass saw is still searched.
 
     ``n`` is a multiple of 16 and ``[d_min, d_min + n)`` covers the range found; ``n = 0`` when
     the range is empty."""
@@ -304,7 +308,8 @@ def ground_search_range(calib, box: tuple[int, int, int, int], nd: int, vehicle=
         z_near = float(np.min(_ground_depth(calib, [x0, x1 - 1], [foot_row, foot_row], roll,
                                             pitch + slack, ground_slack_m)))
         if math.isfinite(z_near) and z_near > 0:
-            dmax = min(nd, int(math.ceil(fb / z_near)) + margin_px)
+            dmax = min(nd, max(int(math.ceil(fb / z_near)), int(math.ceil(seen_max_disp)))
+                       + margin_px)
     if dmin >= dmax:
         return dmin, 0
     n = int(math.ceil((dmax - dmin) / 16.0)) * 16
@@ -313,7 +318,8 @@ def ground_search_range(calib, box: tuple[int, int, int, int], nd: int, vehicle=
 
 def strip_boxes(calib, boxes, nd: int, vehicle=None, strip_rows: int = 64,
                 ground_slack_m: float = 0.3, pitch_slack_deg: float = 3.0,
-                near_from_foot: bool = False, foot_row: int | None = None):
+                near_from_foot: bool = False, foot_row: int | None = None,
+                seen_max_disp: float = 0.0):
     """Split boxes into horizontal strips of ``strip_rows`` with the search range of each
     (:func:`ground_search_range`; lower strips see nearer ground, so a narrower range; with
     ``near_from_foot`` the box's last row, or ``foot_row``, is the foot row of every strip).
@@ -329,7 +335,7 @@ def strip_boxes(calib, boxes, nd: int, vehicle=None, strip_rows: int = 64,
             r = ground_search_range(calib, (x0, ys, x1, ye), nd, vehicle, ground_slack_m,
                                     pitch_slack_deg,
                                     foot_row=(y1 - 1 if foot_row is None else foot_row)
-                                    if near_from_foot else None)
+                                    if near_from_foot else None, seen_max_disp=seen_max_disp)
             if r[1] == 0:
                 prev = None
                 continue

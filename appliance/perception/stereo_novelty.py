@@ -91,9 +91,14 @@ class StereoNoveltyConfig(StereoConfig):
     depth_cue_speckle_px: int = _f(60, lo=0, hi=10000,
                                    doc="depth_cue: speckle filter window of the coarse matcher "
                                        "(0 = off): drops small blobs of mismatches")
-    near_from_foot: bool = _f(True, doc="ground_range: a region's obstacle stands on the "
-                                         "ground inside it, so it is no nearer than the ground "
-                                         "at the region's last row (narrower search)")
+    near_from_foot: bool = _f(True, doc="ground_range, with depth_cue on: a region's obstacle "
+                                         "stands on the ground inside it, so it is no nearer "
+                                         "than the ground at the region's last row, or than "
+                                         "the nearest coarse depth seen in it (without the "
+                                         "coarse pass this check is off: full near range)")
+    near_margin: float = _f(1.15, lo=1.0, hi=4.0,
+                            doc="near_from_foot: the coarse disparity seen is scaled by this "
+                                "(coarse depth is rough) before it bounds the search")
 
 
 class StereoNoveltyPipeline(Pipeline):
@@ -108,6 +113,7 @@ class StereoNoveltyPipeline(Pipeline):
         self.last = None                       # (NoveltyResult, camera mask) for tools/tests
         self._cue_matcher, self._cue_key = None, None
         self._pyramid: dict = {}
+        self._coarse = None                    # (disparity, factor) of this frame's depth cue
 
     # ---- the regions that get dense stereo -------------------------------------------------
     def _cells_to_match(self, res, size_wh: tuple[int, int], extra: dict) -> np.ndarray:
@@ -169,6 +175,7 @@ class StereoNoveltyPipeline(Pipeline):
             self._cue_key = key
         h, w = left.shape[:2]
         disp, _ = disparity_regions(self._cue_matcher, left, right, [(0, 0, w, h)])
+        self._coarse = (disp, kc)
         pts, px = points_from_disparity(disp, calib, None, 1, vehicle, o.use_attitude)
         inb = height_band(pts, o.band_min_m, o.band_max_m,
                           min(o.max_range_m, o.depth_cue_max_range_m))
@@ -180,6 +187,18 @@ class StereoNoveltyPipeline(Pipeline):
         counts = np.bincount(ci[ok] * cols + cj[ok], minlength=rows * cols).reshape(rows, cols)
         raised = counts >= o.depth_cue_min_fraction * cell * cell
         return dilate_cells(raised, o.depth_cue_dilate_cells)
+
+    def _seen_disparity(self, box, k: int) -> float | None:
+        """The largest coarse disparity (depth cue pass) inside ``box`` (matching resolution
+        1/k), in matching-resolution pixels times ``near_margin``; None without a coarse
+        pass this frame."""
+        if self._coarse is None:
+            return None
+        disp, kc = self._coarse
+        f = kc / float(k)                           # coarse px -> matching px
+        x0, y0, x1, y1 = box
+        sub = disp[int(y0 // f):int(math.ceil(y1 / f)), int(x0 // f):int(math.ceil(x1 / f))]
+        return float(sub.max()) * f * self.options.near_margin if sub.size else 0.0
 
     def _boxes(self, cam_mask: np.ndarray, k: int, calib_k, nd: int, vehicle):
         """Boxes (at matching resolution, 1/k) covering the mask and their search ranges.
@@ -220,9 +239,11 @@ class StereoNoveltyPipeline(Pipeline):
                 bx = (sc(b[0], w), sc(b[1], h), scu(b[2], w, W // g * g),
                       scu(b[3], h, H // g * g))
                 foot = scu(max(feet), h, H // g * g) - 1
+                seen = self._seen_disparity(bx, k)
                 bb, rr = strip_boxes(calib_k, [bx], nd, vehicle, o.strip_rows,
-                                     o.ground_slack_m, o.pitch_slack_deg, o.near_from_foot,
-                                     foot_row=foot)
+                                     o.ground_slack_m, o.pitch_slack_deg,
+                                     o.near_from_foot and seen is not None, foot_row=foot,
+                                     seen_max_disp=seen or 0.0)
                 boxes += bb
                 ranges += rr
         return boxes, ranges
@@ -234,6 +255,7 @@ class StereoNoveltyPipeline(Pipeline):
         K = cam.matrix()
         M = fr.calib.mount.camera_to_vehicle()
         H, W = fr.left.shape[:2]
+        self._coarse = None
         t0, c0 = time.perf_counter(), time.thread_time()
         kd = match_factor(W, o.descriptor_width_px)
         if kd > 1:
@@ -271,6 +293,7 @@ class StereoNoveltyPipeline(Pipeline):
         t4, c4 = time.perf_counter(), time.thread_time()
         self.last = (res, cam_mask, exclude)
         self._pyramid.clear()
+        self._coarse = None
         rows, cols = res.mask.shape
         h, w = left.shape[:2]
         return Detections(points_xy=xy, debug={
