@@ -97,6 +97,7 @@ def main(argv=None) -> int:
     pipe._holes = wrap("depth holes", pipe._holes)
     for attr, name in STAGES.items():
         setattr(rgbd_mod, attr, wrap(name, getattr(rgbd_mod, attr)))
+    pipe.colour.wait_lut()                                  # the exact colour table is built
     pipe.process(SensorInputs(0, rgbd=frames[0]))          # warm-up (caches, imports)
     load0 = os.getloadavg()
     for _ in range(a.repeat):

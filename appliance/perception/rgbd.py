@@ -154,6 +154,8 @@ class RgbdPipeline(Pipeline):
             from appliance import rgbd_model       # the file is read outside perception
             model = rgbd_model.load(o.model or None)
         self.model = model
+        # the exact (8-bit) lookup table is built in a background thread; until it is there the
+        # suspected pixels are classified one by one, with the same result
         self.colour = ColourClassifier(model.mixtures(o.colour_space), o.colour_threshold,
                                        o.colour_space, o.colour_lut_bits)
         self.traversable_idx = model.index(o.traversable)
@@ -212,7 +214,7 @@ class RgbdPipeline(Pipeline):
         # 2. colour classes of the suspected pixels (the whole frame through the lookup table:
         # one gather per pixel is cheaper than picking the suspected ones out)
         cfull = None
-        if o.colour_lut_bits:
+        if self.colour.lut_ready():
             cfull = self.colour.classify_image(color)
             cmap = np.where(sus, cfull, np.int16(NOT_CLASSIFIED))
         else:

@@ -20,6 +20,7 @@ covariance is singular; a small ridge is added), which is why it does worse ther
 """
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import cv2
@@ -93,26 +94,49 @@ class ColourClassifier:
     test)."""
 
     def __init__(self, mixtures: list[GaussianMixture], threshold: float,
-                 space: str | None = None, lut_bits: int = 0):
+                 space: str | None = None, lut_bits: int = 0, background: bool = True):
         self.threshold = float(threshold)
         self._means = [m.means.astype(np.float32) for m in mixtures]
         self._w = [m.whiteners().astype(np.float32) for m in mixtures]
         self.space = space
         self.lut_bits = int(lut_bits)
         self._lut = None
-        if self.lut_bits:
-            if space is None or not 5 <= self.lut_bits <= 8:
-                raise ValueError("a colour lookup table needs a colour space and 5..8 bits")
-            key = (space, self.lut_bits, self.threshold,
-                   tuple(np.concatenate([m.ravel() for m in self._means]).tolist()),
-                   tuple(np.concatenate([w.ravel() for w in self._w]).tolist()))
-            lut = _LUT_CACHE.get(key)
-            if lut is None:
-                lut = self._build_lut()
-                if len(_LUT_CACHE) > 8:
-                    _LUT_CACHE.clear()
-                _LUT_CACHE[key] = lut
-            self._lut = lut
+        self._ready = threading.Event()
+        if not self.lut_bits:
+            return
+        if space is None or not 5 <= self.lut_bits <= 8:
+            raise ValueError("a colour lookup table needs a colour space and 5..8 bits")
+        self._key = (space, self.lut_bits, self.threshold,
+                     tuple(np.concatenate([m.ravel() for m in self._means]).tolist()),
+                     tuple(np.concatenate([w.ravel() for w in self._w]).tolist()))
+        lut = _LUT_CACHE.get(self._key)
+        if lut is not None:
+            self._set(lut)
+        elif self.lut_bits == 8 and background:
+            # the exact table takes 1-3 s: build it beside the loop; until it is there the
+            # caller classifies per pixel (lut_ready() False), with the same result
+            threading.Thread(target=self._build_and_set, name="rgbd-colour-lut",
+                             daemon=True).start()
+        else:
+            self._build_and_set()
+
+    def _build_and_set(self) -> None:
+        lut = self._build_lut()
+        if len(_LUT_CACHE) > 8:
+            _LUT_CACHE.clear()
+        _LUT_CACHE[self._key] = lut
+        self._set(lut)
+
+    def _set(self, lut: np.ndarray) -> None:
+        self._lut = lut
+        self._ready.set()
+
+    def lut_ready(self) -> bool:
+        return self._lut is not None
+
+    def wait_lut(self, timeout: float | None = None) -> bool:
+        """Block until the lookup table is built (tools, tests); True when it is."""
+        return self._ready.wait(timeout) if self.lut_bits else False
 
     def _build_lut(self) -> np.ndarray:
         bits = self.lut_bits
