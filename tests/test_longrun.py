@@ -16,7 +16,7 @@ import pytest
 from appliance.perception import Detections, Pipeline, register_pipeline
 import appliance.perception as perception
 from drivers.sim.scenes import COVERAGE_LANES, build_scene
-from tools.longrun_stereo import CSV_FIELDS, LongRun, plateau_verdict
+from tools.longrun_stereo import CSV_FIELDS, LongRun, plateau_verdict, refresh_summary
 
 
 class BlindPipeline(Pipeline):
@@ -107,6 +107,11 @@ def test_blind_box_counts_the_collision_with_the_person_on_the_path(tmp_path):
     img = cv2.imread(str(out / "longrun.png"))
     assert img is not None and img.shape[1] == 1500
     assert 'pipelines = ["test-blind"]' in (out / "config.toml").read_text()
+    # no novelty model in this box: no model verdict; the RSS verdict is taken from the CSV
+    assert s["model"]["samples"]["plateau"] is None
+    again = refresh_summary(out)
+    assert again["rss_mb"]["verdict"]["points"] == len(rows) == 8
+    assert again["collisions"] == s["collisions"]
 
 
 def test_phantom_on_an_empty_field_is_one_false_stop_then_an_override(tmp_path):
@@ -141,9 +146,13 @@ def test_plateau_verdict():
     t = np.arange(400)
     rising_then_flat = np.minimum(t * 200, 30000).astype(float)
     v = plateau_verdict(rising_then_flat, bound=38400)
-    assert v["plateau"] is True and v["samples_max"] == 30000
-    assert v["frames_to_95pct_of_final"] == 144
-    assert plateau_verdict(t * 100.0, bound=None)["plateau"] is False      # still growing
+    assert v["plateau"] is True and v["max"] == 30000 and v["q4_max_vs_q2_max"] == 0.0
+    assert v["points_to_95pct_of_q4_mean"] == 144      # 200 t >= 0.95 * 30000 from t = 143
+    # a dip in the third quarter (cells excluded near obstacles for a while) is still a plateau
+    dip = rising_then_flat.copy()
+    dip[220:280] = 22000
+    assert plateau_verdict(dip, bound=38400)["plateau"] is True
+    assert plateau_verdict(t * 100.0)["plateau"] is False                   # still growing
     assert plateau_verdict(np.full(400, 50000.0), bound=38400)["plateau"] is False  # over bound
     assert plateau_verdict(np.ones(3), bound=10)["plateau"] is None        # too short to say
 

@@ -189,7 +189,7 @@ class LongRun:
         self._cycle_wall: list[float] = []
         self._win = {"pipe": [], "pipe_cpu": [], "render": [], "render_cpu": [], "cycle": [],
                      "novel": [], "stereo_px": []}
-        self._samples_all: list[int] = []
+        self.grid_cells = None
         self._path_s = self.vehicle._s
         self._spacing = 6.0
         if self.scene == "stubble-coverage":
@@ -302,10 +302,9 @@ class LongRun:
                 w["stereo_px"].append(float(dbg.get("stereo_px_fraction", 0.0)))
                 if self.model_bound is None and "grid" in dbg:
                     rows, cols = dbg["grid"]
+                    self.grid_cells = rows * cols
                     self.model_bound = self._novelty[0].model.max_size(rows * cols) \
                         if self._novelty else None
-        if samples is not None:
-            self._samples_all.append(samples)
         for nd in self._novelty:
             u = nd.updater
             if u is not None and u.done > self._updates_seen:
@@ -388,8 +387,7 @@ class LongRun:
         st = v.stats()
         cycles = self.daemon.loop.cycles
         hours = cycles / self.cfg.loop.rate_hz / 3600.0
-        samples = np.asarray(self._samples_all, float)
-        plateau = plateau_verdict(samples, self.model_bound)
+        ver = verdicts(self.rows, self.model_bound)
         hits = [e for e in self.events if e["event"] == "collision"]
         n_frames = max(1, len(self._pipe_wall))
         return {
@@ -412,17 +410,19 @@ class LongRun:
             "detours": v.detours, "overrides": v.overrides,
             "overrides_per_hour": round(v.overrides / hours, 1) if hours else None,
             "tolerances_m": {"along": self.zone_tol_m, "across": self.lateral_tol_m},
-            "model": {**plateau, "bound": self.model_bound,
+            "model": {"samples": ver["model"], "bound": self.model_bound,
+                      "bytes_per_sample": 8 * 4 + 8,
+                      "grid_cells": self.grid_cells,
                       "updates": None if not self._novelty else self._novelty[0].model.updates,
                       "updates_skipped": None if not self._novelty or
                       self._novelty[0].updater is None else self._novelty[0].updater.skipped,
                       "update_ms_p50": _pct([1e3 * s for s in self._update_s], 50),
                       "update_ms_max": None if not self._update_s else
                       round(1e3 * max(self._update_s), 1)},
-            "rss_mb": {"start": round(self.rss_start_mb, 1),
+            "rss_mb": {"verdict": ver["rss"], "before_run": round(self.rss_start_mb, 1),
                        "end": self.rows[-1]["rss_mb"] if self.rows else None,
-                       "max": max((r["rss_mb"] for r in self.rows), default=None),
-                       "half": self.rows[len(self.rows) // 2]["rss_mb"] if self.rows else None},
+                       "max": max((r["rss_mb"] for r in self.rows), default=None)},
+            "csv_row_every_s": ver["row_every_s"],
             "timing_ms": {
                 "pipeline_wall_p50": _pct(self._pipe_wall, 50),
                 "pipeline_wall_p99": _pct(self._pipe_wall, 99),
@@ -441,25 +441,38 @@ class LongRun:
         }
 
 
-def plateau_verdict(samples: np.ndarray, bound: int | None) -> dict:
-    """The model's size over the run: it plateaus when, over the second half of the run, it
-    stays within the pruning bound and the mean of the last quarter differs from the mean of
-    the third quarter by less than 5 %."""
-    n = len(samples)
+def plateau_verdict(samples, bound: int | None = None) -> dict:
+    """Does a size (the model's samples, or the process RSS) plateau over the run? The series
+    is split in quarters. It plateaus when the highest value of the last quarter is within
+    5 % of the highest value of the second quarter (the envelope stopped growing after the
+    warm-up) and, when a ``bound`` is given, never exceeds it in the second half. (Means of
+    quarters are reported too, but dips - many cells excluded near obstacles for a while -
+    make them a poor test of growth.)"""
+    x = np.asarray([v for v in samples if v is not None and np.isfinite(v)], float)
+    n = len(x)
     if n < 8:
-        return {"plateau": None, "samples_first": None, "samples_max": None,
-                "samples_last": None, "samples_q3_mean": None, "samples_q4_mean": None}
-    q3 = samples[n // 2: 3 * n // 4].mean()
-    q4 = samples[3 * n // 4:].mean()
-    within = bound is None or bound < 0 or samples[n // 2:].max() <= bound
-    flat = abs(q4 - q3) <= 0.05 * max(q3, 1.0)
-    final = q4
-    reach = np.nonzero(samples >= 0.95 * final)[0]
-    return {"plateau": bool(within and flat), "samples_first": int(samples[0]),
-            "samples_max": int(samples.max()), "samples_last": int(samples[-1]),
-            "samples_q3_mean": round(float(q3), 1), "samples_q4_mean": round(float(q4), 1),
-            "q4_vs_q3": round(float(q4 / q3 - 1.0), 4) if q3 else None,
-            "frames_to_95pct_of_final": int(reach[0]) + 1 if len(reach) else None}
+        return {"plateau": None, "first": None, "max": None, "last": None}
+    q = [x[i * n // 4:(i + 1) * n // 4] for i in range(4)]
+    env2, env4 = float(q[1].max()), float(q[3].max())
+    within = bound is None or bound < 0 or float(x[n // 2:].max()) <= bound
+    flat = env4 <= 1.05 * env2
+    reach = np.nonzero(x >= 0.95 * float(q[3].mean()))[0]
+    return {"plateau": bool(within and flat), "first": round(float(x[0]), 1),
+            "max": round(float(x.max()), 1), "last": round(float(x[-1]), 1),
+            "q2_max": round(env2, 1), "q4_max": round(env4, 1),
+            "q4_max_vs_q2_max": round(env4 / env2 - 1.0, 4) if env2 else None,
+            "q3_mean": round(float(q[2].mean()), 1), "q4_mean": round(float(q[3].mean()), 1),
+            "points_to_95pct_of_q4_mean": int(reach[0]) + 1 if len(reach) else None,
+            "points": n}
+
+
+def verdicts(rows: list[dict], bound: int | None) -> dict:
+    """Plateau verdicts for the model size and the RSS from the CSV rows."""
+    def series(k):
+        return [float(r[k]) if r.get(k) not in ("", None) else float("nan") for r in rows]
+    dt = float(rows[1]["t_s"]) - float(rows[0]["t_s"]) if len(rows) > 1 else None
+    return {"model": plateau_verdict(series("model_samples"), bound),
+            "rss": plateau_verdict(series("rss_mb")), "row_every_s": dt}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -590,6 +603,31 @@ def _num(v):
         return float("nan")
 
 
+def refresh_summary(out_dir) -> dict:
+    """Recompute the plateau verdicts of ``out_dir/summary.json`` from its CSV (after a
+    change to the verdict rule, without running again)."""
+    out = Path(out_dir)
+    with open(out / "longrun.csv", newline="", encoding="utf-8") as f:
+        rows = list(csv.DictReader(f))
+    s = json.loads((out / "summary.json").read_text("utf-8"))
+    bound = s.get("model", {}).get("bound")
+    ver = verdicts(rows, bound)
+    m = s.setdefault("model", {})
+    for k in [k for k in m if k.startswith("samples_") and k != "samples"] + \
+            ["plateau", "q4_vs_q3", "frames_to_95pct_of_final"]:
+        m.pop(k, None)
+    m["samples"] = ver["model"]
+    m.setdefault("bytes_per_sample", 8 * 4 + 8)
+    r = s.setdefault("rss_mb", {})
+    if "start" in r:
+        r["before_run"] = r.pop("start")
+    r.pop("half", None)
+    r["verdict"] = ver["rss"]
+    s["csv_row_every_s"] = ver["row_every_s"]
+    (out / "summary.json").write_text(json.dumps(s, indent=2), encoding="utf-8")
+    return s
+
+
 def plot(out_dir, png: str | None = None) -> Path:
     """Draw longrun.png from longrun.csv, events.csv and summary.json in ``out_dir``."""
     out = Path(out_dir)
@@ -638,6 +676,8 @@ def plot(out_dir, png: str | None = None) -> Path:
     # the headline figures
     tx, ty = left + 20, 30 + 2 * PH + 90
     st = summary.get("stops", {})
+    ms = m.get("samples", {})
+    rs = summary.get("rss_mb", {}).get("verdict", {})
     lines = [
         f"{summary.get('scene', '?')} seed {summary.get('seed', '?')}, stereo "
         f"{summary.get('image_px', '?')} (scale {summary.get('stereo_scale', '?')})",
@@ -648,8 +688,10 @@ def plot(out_dir, png: str | None = None) -> Path:
         f"(early {st.get('early', '?')}), fault {st.get('fault', '?')}",
         f"false stops per hour {summary.get('false_stops_per_hour', '?')}, "
         f"overrides {summary.get('overrides', '?')}, detours {summary.get('detours', '?')}",
-        f"model: max {m.get('samples_max', '?')}, last {m.get('samples_last', '?')}, bound "
-        f"{bound}, plateau {m.get('plateau', '?')}",
+        f"model samples: max {ms.get('max', '?')}, last {ms.get('last', '?')}, bound "
+        f"{bound}, plateau {ms.get('plateau', '?')}",
+        f"RSS MB: max {rs.get('max', '?')}, last {rs.get('last', '?')}, plateau "
+        f"{rs.get('plateau', '?')}",
     ]
     for i, t in enumerate(lines):
         cv2.putText(img, t, (tx, ty + 22 * i), _FONT, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
@@ -680,6 +722,7 @@ def main(argv=None) -> int:
     ap.add_argument("--replot", metavar="DIR", help="only draw DIR/longrun.png again")
     a = ap.parse_args(argv)
     if a.replot:
+        refresh_summary(a.replot)
         print(plot(a.replot))
         return 0
     if not a.out:
@@ -696,8 +739,8 @@ def main(argv=None) -> int:
     brief = {k: s[k] for k in ("simulated_s", "distance_m", "lanes_reached", "collisions",
                                "collided_with", "stops", "false_stops_per_hour", "detours",
                                "overrides", "timing_ms", "wall_s", "process_cpu_s")}
-    brief["model"] = {k: s["model"][k] for k in ("plateau", "samples_max", "samples_last",
-                                                 "bound", "q4_vs_q3") if k in s["model"]}
+    brief["model"] = {"bound": s["model"]["bound"], **s["model"]["samples"]}
+    brief["rss_mb"] = s["rss_mb"]["verdict"]
     print(json.dumps(brief, indent=2))
     return 0
 
