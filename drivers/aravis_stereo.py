@@ -31,7 +31,7 @@ import time
 
 import numpy as np
 
-from hal.devices import StereoCamera
+from hal.devices import StereoCamera, check_timeout
 from hal.errors import DeviceInitializationError, DeviceOperationError, DeviceError
 from hal.types import Mount, StereoCalibration, StereoFrame
 
@@ -270,6 +270,8 @@ class AravisStereoCamera(StereoCamera):
     @classmethod
     def from_config(cls, cfg, clock, shared):
         o = cfg.options
+        check_timeout(cfg.name, cfg.timeout_s, 1.0 / o.get("rate_hz", 10.0),
+                      "the frame period (1 / rate_hz)")
         for k in ("left", "right", "calibration"):
             if not o.get(k):
                 from hal.errors import ConfigError

@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hal.devices import DepthCamera
+from hal.devices import DepthCamera, check_timeout
 from hal.errors import DeviceError, DeviceOperationError
 from hal.types import DepthCalibration, DepthFrame, Mount, PinholeCalibration
 
@@ -117,6 +117,8 @@ class FreenectDepthCamera(DepthCamera):
     @classmethod
     def from_config(cls, cfg, clock, shared):
         o = cfg.options
+        check_timeout(cfg.name, cfg.timeout_s, 1.0 / o.get("max_fps", 15.0),
+                      "the pair period (1 / max_fps)")
         fx, fy, cx, cy = cls.DEFAULT_INTRINSICS
         return cls(cfg.name, clock, index=o.get("index", 0), timeout_s=cfg.timeout_s,
                    mount=mount_from_options(o, cls.DEFAULT_MOUNT), fx=o.get("fx", fx),

@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hal.devices import SafetyLaser
+from hal.devices import SafetyLaser, check_timeout
 from hal.errors import (DeviceDataError, DeviceInitializationError,
                         DeviceOperationError, DeviceTimeoutError)
 from hal.types import LaserGeometry, LaserScan, Mount
@@ -290,6 +290,7 @@ class SickLms1xxLaser(SafetyLaser):
     @classmethod
     def from_config(cls, cfg, clock, shared):
         o = cfg.options
+        check_timeout(cfg.name, cfg.timeout_s, 0.04, "the scan period at 25 Hz")
         return cls(cfg.name, clock, host=o.get("host", "192.168.0.1"),
                    port=o.get("port", DEFAULT_PORT), timeout_s=cfg.timeout_s,
                    mount=mount_from_options(o, cls.DEFAULT_MOUNT),

@@ -31,7 +31,7 @@ import time
 
 import numpy as np
 
-from hal.devices import StrobeTrigger
+from hal.devices import StrobeTrigger, check_timeout
 from hal.errors import DeviceOperationError
 
 from .calibration import Backoff
@@ -157,6 +157,8 @@ class StrobeSerialTrigger(StrobeTrigger):
     @classmethod
     def from_config(cls, cfg, clock, shared):
         o = cfg.options
+        check_timeout(cfg.name, cfg.timeout_s, o.get("status_period_s", 0.1),
+                      "the status period (status_period_s)")
         return cls(cfg.name, clock, port=o.get("port", "/dev/fieldguard-strobe"),
                    baudrate=o.get("baudrate", 115200), timeout_s=cfg.timeout_s,
                    rate_hz=o.get("rate_hz", 10.0), strobe=o.get("strobe", False),

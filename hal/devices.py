@@ -13,7 +13,7 @@ from abc import ABC, abstractmethod
 from typing import Any, Generic, TypeVar
 
 from .clock import Clock
-from .errors import DeviceError
+from .errors import ConfigError, DeviceError
 from .health import Health, HealthReport
 from .types import (DepthFrame, GateOutput, LaserScan, StereoCalibration, StereoFrame,
                     VehicleState)
@@ -204,6 +204,17 @@ class Device(ABC, Generic[T]):
         """A quick check for `fieldguard selftest`: reachable and streaming."""
         h = self.health()
         return h.ok, h.reason or "streaming"
+
+
+def check_timeout(name: str, timeout_s: float, period_s: float, what: str) -> None:
+    """A periodic device's ``timeout_s`` must be longer than its sample period (else it is never
+    fresh: a STOP that never clears). The defaults are one period + 60 ms (docs/hardware.md,
+    "within two cycles"). ConfigError naming the key otherwise."""
+    if timeout_s <= period_s:
+        raise ConfigError(f"timeout_s ({timeout_s:g} s) must be longer than {what} "
+                          f"({period_s:.3g} s); one period + 0.06 s = {period_s + 0.06:.2f} s "
+                          f"stops within two cycles of a missing sample",
+                          key=f"devices.{name}.timeout_s")
 
 
 class StereoCamera(Device[StereoFrame]):

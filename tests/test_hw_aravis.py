@@ -224,6 +224,7 @@ def _child(cal_path: str) -> int:
         res["first_state"] = rig.state
         res["first_faults"] = rig.cycles[-1][2] if rig.cycles else None
         time.sleep(1.0)
+        wait_for(lambda: dev.latest() is not None, 2.0)
         s = dev.latest()
         res["frame_shape"] = list(s.left.shape) if s is not None else None
         c = dev.counters

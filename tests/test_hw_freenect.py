@@ -186,9 +186,9 @@ def test_missing_device_is_a_fault_with_backoff(tmp_path, stub):
 # ---------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def greenhouse_dump(tmp_path_factory, stub):
-    """16 frames of the simulated greenhouse at 15 fps."""
+    """16 frames of the simulated greenhouse at 15 fps, three times over (3.2 s)."""
     out = tmp_path_factory.mktemp("gh") / "dump"
-    return sim_dump(out, scene="greenhouse", frames=16, fps=15.0)
+    return sim_dump(out, scene="greenhouse", frames=16, fps=15.0, repeat=3)
 
 
 def _rgbd_options(info, stub):
@@ -197,9 +197,9 @@ def _rgbd_options(info, stub):
 
 
 def test_daemon_runs_the_rgbd_pipeline_from_the_kinect(greenhouse_dump, stub, tmp_path):
-    # the same frames, silent for 0.6 s after the 8th
+    # the first 16 frames, silent for 0.6 s after the 8th
     gap = {**greenhouse_dump, "dump": str(with_gap(greenhouse_dump["dump"], tmp_path / "gap", 8,
-                                                   0.6))}
+                                                   0.6, keep=16))}
     rig = DaemonRig({"rgbd": _rgbd_options(gap, stub)}, pipelines=("rgbd",))
     dev = rig.daemon.devices["rgbd"]
     period = 1 / 15.0
@@ -218,14 +218,18 @@ def test_daemon_runs_the_rgbd_pipeline_from_the_kinect(greenhouse_dump, stub, tm
         assert rig.silence_stop_cycles("rgbd", period, t_ok) <= 2
         first = next(c for c in rig.cycles if c[0] >= t_ok and rgbd_fault(c))
         assert "stale" in " ".join(first[2]) and first[1] == "STOP"
+        assert wait_for(lambda: any("stale" in " ".join(c[2]) for c in rig.cycles
+                                    if c[0] > first[0] + 300_000_000), 2.0)   # it lasts: the gap
         # frames again: the faults clear
         assert wait_for(lambda: not rig.cycles[-1][2], 3.0), rig.cycles[-1]
         t_back = rig.cycles[-1][0]
         # the end of the dump (libfreenect returns an error): STOP within two cycles
-        assert wait_for(lambda: rig.silence_stop_cycles("rgbd", period, t_back) is not None, 4.0)
-        assert rig.silence_stop_cycles("rgbd", period, t_back) <= 2
-        end = next(c for c in rig.cycles if c[0] >= t_back and rgbd_fault(c))
-        assert "process_events returned -1" in " ".join(end[2]) and end[1] == "STOP"
+        ended = "process_events returned -1"
+        assert wait_for(lambda: rig.silence_stop_cycles("rgbd", period, t_back, ended)
+                        is not None, 4.0)
+        assert rig.silence_stop_cycles("rgbd", period, t_back, ended) <= 2
+        end = next(c for c in rig.cycles if c[0] >= t_back and ended in " ".join(c[2]))
+        assert end[1] == "STOP"
         # replayed from the start after the back-off: the faults clear again
         assert wait_for(lambda: not rig.cycles[-1][2], 6.0), rig.cycles[-1]
         assert dev.counters["restarts"] >= 1
@@ -257,9 +261,9 @@ def test_fieldguard_run_with_a_hardware_config(greenhouse_dump, stub, tmp_path):
     assert any("obstacle" in x or "| clear" in x.lower() for x in states), states
     assert "fieldguard up: mode=hardware devices=rgbd,link pipelines=rgbd" in r.stderr
     # `fieldguard selftest --config`: opens the devices itself and reports the Kinect (asked
-    # 0.7 s after start: the helper is up in ~0.35 s, the 16-frame dump lasts ~1.1 s)
+    # 1 s after start: the helper is up in ~0.35 s, the dump lasts 3.2 s)
     r = subprocess.run([exe, "selftest", "--config", str(tmp_path / "hw.toml"), "--seconds",
-                        "0.7"], capture_output=True, text=True, timeout=60, cwd=str(tmp_path))
+                        "1.0"], capture_output=True, text=True, timeout=60, cwd=str(tmp_path))
     assert r.returncode == 0, r.stdout + r.stderr[-2000:]
     assert "PASS  rgbd" in r.stdout and "streaming registered depth + colour" in r.stdout
 
@@ -275,3 +279,23 @@ def test_stream_check_reports_figures(tmp_path, stub):
     assert 0 <= r["publish_age_ms"]["p50"] <= r["publish_age_ms"]["max"] < 200
     assert r["driver_cpu_ms_per_pair"] > 0 and r["helper_cpu_ms_per_pair"] > 0
     assert r["selftest"][0]
+
+
+@pytest.mark.parametrize("table, period", [
+    ({"rgbd": {"type": "freenect", "timeout_s": 0.06}}, "1 / max_fps"),
+    ({"rgbd": {"type": "freenect", "max_fps": 5.0, "timeout_s": 0.13}}, "1 / max_fps"),
+    ({"trigger": {"type": "serial", "timeout_s": 0.1}}, "status_period_s"),
+    ({"stereo": {"type": "aravis", "left": "a", "right": "b", "calibration": "c.json",
+                 "rate_hz": 5.0}}, "1 / rate_hz"),
+    ({"laser": {"type": "sick-lms1xx", "timeout_s": 0.03}}, "25 Hz")])
+def test_a_timeout_shorter_than_the_period_is_a_config_error(table, period):
+    """Else the device would never be fresh: a STOP that never clears, for a typo."""
+    from appliance.config import parse_config
+    from appliance.daemon import Daemon
+    from hal.errors import ConfigError
+    cfg = parse_config({"devices": {**table, "link": {"type": "log"}}}, "hw.toml")
+    d = Daemon(cfg, mode="hardware", serve_status=False)
+    with pytest.raises(ConfigError, match=r"timeout_s .* must be longer than .*" +
+                       period.replace("(", r"\(")):
+        d.start()
+    d.shutdown()

@@ -257,13 +257,13 @@ class DaemonRig:
     def now(self):
         return self.daemon.clock.now_ns()
 
-    def silence_stop_cycles(self, name: str, period_s: float, since_ns: int):
+    def silence_stop_cycles(self, name: str, period_s: float, since_ns: int, match: str = ""):
         """For a device that went silent after ``since_ns``: how many cycles from the moment
         its first missing sample was due (its newest sample + one period) until the gate said
-        STOP (None if the device never faulted)."""
+        STOP (None if the device never faulted; ``match``: only a fault saying that)."""
         cyc = [c for c in list(self.cycles) if c[0] >= since_ns]
-        k = next((i for i, c in enumerate(cyc) if any(f.startswith(name + ":") for f in c[2])),
-                 None)
+        k = next((i for i, c in enumerate(cyc)
+                  if any(f.startswith(name + ":") and match in f for f in c[2])), None)
         if k is None or cyc[k][3].get(name) is None:
             return None
         return self.cycles_until(cyc[k][3][name] + int(period_s * 1e9), "STOP")

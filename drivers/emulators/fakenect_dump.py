@@ -145,10 +145,12 @@ def sim_dump(out: str | Path, scene: str = "greenhouse", frames: int = 20, seed:
                             "mount_pitch_deg": cal.mount.pitch_deg}}
 
 
-def with_gap(src: str | Path, dst: str | Path, after_frame: int, gap_s: float) -> Path:
+def with_gap(src: str | Path, dst: str | Path, after_frame: int, gap_s: float,
+             keep: int | None = None) -> Path:
     """A copy of dump ``src`` (files hard-linked where possible) in which the recorded clock
     jumps ``gap_s`` after colour+depth frame ``after_frame``: played back, the device goes
-    silent that long. Any recorded dump works (fakenect only reads the times in the names)."""
+    silent that long. ``keep``: only the first so many frames. Any recorded dump works (fakenect
+    only reads the times in the names)."""
     src, dst = Path(src), Path(dst)
     dst.mkdir(parents=True, exist_ok=False)
     out, frame = [], -1
@@ -156,6 +158,8 @@ def with_gap(src: str | Path, dst: str | Path, after_frame: int, gap_s: float) -
         kind, t, rest = name.split("-", 2)
         if kind == "r":
             frame += 1
+        if keep is not None and frame >= keep:
+            break
         shift = gap_s if frame > after_frame else 0.0
         new = f"{kind}-{float(t) + shift:f}-{rest}"
         try:
