@@ -21,6 +21,7 @@ from __future__ import annotations
 import time
 import math
 from dataclasses import dataclass, replace
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -258,17 +259,25 @@ def scaled_calibration(calib, k: int):
     return replace(calib, camera=c2)
 
 
-def _ground_depth(calib, us, vs, roll: float, pitch: float, ground_m: float) -> np.ndarray:
+@lru_cache(maxsize=64)
+def _height_rows(mount, roll: float, pitch: float) -> tuple[tuple[float, float, float], float]:
+    """The z row of the optical->vehicle rotation with the vehicle at (roll, pitch), and the
+    optical centre's height (cached: a few attitudes per frame)."""
+    from hal.types import rotation_rpy
+    R = rotation_rpy(roll, pitch, 0.0) @ mount.camera_to_vehicle()
+    return (float(R[2, 0]), float(R[2, 1]), float(R[2, 2])), float(mount.z_m)
+
+
+def _ground_depth(calib, us, vs, roll: float, pitch: float, ground_m: float) -> list[float]:
     """z-depth at which the rays through pixels (us, vs) meet the plane ``z = ground_m`` of the
     vehicle frame, the vehicle at (roll, pitch); inf where a ray does not go down."""
-    from hal.types import rotation_rpy
     cam = calib.camera
-    R = rotation_rpy(roll, pitch, 0.0) @ calib.mount.camera_to_vehicle()
-    us, vs = np.asarray(us, np.float64), np.asarray(vs, np.float64)
-    rays = np.stack([(us - cam.cx) / cam.fx, (vs - cam.cy) / cam.fy, np.ones_like(us)])
-    a = (R @ rays)[2]                       # height change per metre of z-depth
-    with np.errstate(divide="ignore"):
-        return np.where(a < -1e-6, (calib.mount.position[2] - ground_m) / -a, np.inf)
+    (r0, r1, r2), h = _height_rows(calib.mount, float(roll), float(pitch))
+    out = []
+    for u, v in zip(us, vs):
+        a = r0 * (u - cam.cx) / cam.fx + r1 * (v - cam.cy) / cam.fy + r2   # height per metre
+        out.append((h - ground_m) / -a if a < -1e-6 else math.inf)
+    return out
 
 
 def ground_search_range(calib, box: tuple[int, int, int, int], nd: int, vehicle=None,
@@ -300,13 +309,13 @@ def ground_search_range(calib, box: tuple[int, int, int, int], nd: int, vehicle=
     slack = math.radians(pitch_slack_deg)
     x0, y0, x1, y1 = box
     fb = cam.fx * calib.baseline_m
-    z_far = float(np.max(_ground_depth(calib, [x0, x1 - 1, x0, x1 - 1], [y0, y0, y1 - 1, y1 - 1],
-                                       roll, pitch - slack, -ground_slack_m)))
+    z_far = max(_ground_depth(calib, [x0, x1 - 1, x0, x1 - 1], [y0, y0, y1 - 1, y1 - 1],
+                              roll, pitch - slack, -ground_slack_m))
     dmin = 0 if not math.isfinite(z_far) else max(0, int(math.floor(fb / z_far)) - margin_px)
     dmax = nd
     if foot_row is not None:
-        z_near = float(np.min(_ground_depth(calib, [x0, x1 - 1], [foot_row, foot_row], roll,
-                                            pitch + slack, ground_slack_m)))
+        z_near = min(_ground_depth(calib, [x0, x1 - 1], [foot_row, foot_row], roll,
+                                   pitch + slack, ground_slack_m))
         if math.isfinite(z_near) and z_near > 0:
             dmax = min(nd, max(int(math.ceil(fb / z_near)), int(math.ceil(seen_max_disp)))
                        + margin_px)
