@@ -270,7 +270,7 @@ class AravisStereoCamera(StereoCamera):
     @classmethod
     def from_config(cls, cfg, clock, shared):
         o = cfg.options
-        check_timeout(cfg.name, cfg.timeout_s, 1.0 / o.get("rate_hz", 10.0),
+        check_timeout(cfg.name, cfg.timeout_s, 1.0 / max(o.get("rate_hz", 10.0), 1e-3),
                       "the frame period (1 / rate_hz)")
         for k in ("left", "right", "calibration"):
             if not o.get(k):

@@ -10,8 +10,10 @@ stack has something (on a silent or unplugged Kinect, up to libusb's timeout), a
 playback sleeps inside it between frames: measured here, a 2 s gap in a dump froze every other
 Python thread for 2 s. In the daemon's process that would freeze the loop, so the binding runs
 in a child process (``python -m drivers.freenect_rgbd --child``) that pairs each depth frame with
-the newest colour frame, throttles to ``max_fps`` and writes the pairs to a pipe; this driver's
-acquisition thread reads the pipe with a short ``select`` and never blocks. The child also
+the newest colour frame, throttles to ``max_fps`` and hands the pairs over through a shared-memory
+ring, announcing each with a small message on a pipe (nothing in libfreenect's callbacks may
+block: see the ring below); this driver's acquisition thread reads the pipe with a short
+``select`` and never blocks. The child also
 isolates the C library: a crash, an ``exit()`` (fakenect does that on a missing file) or a USB
 error ends the child, not the daemon.
 
@@ -19,7 +21,11 @@ Health: the child's end (exit code and the tail of its stderr) or garbled data o
 the device FAULT at once; no frame for ``lost_after_s`` kills the child; either way it is
 restarted with exponential back-off (0.2 s doubling to ``backoff_max_s``). Between, the base
 class marks the data stale after ``timeout_s``. Counters: ``pairs``, ``unmatched`` (depth frames
-with no colour frame within ``pair_tolerance_ms``), ``throttled``, ``restarts``.
+with no colour frame within ``pair_tolerance_ms``), ``throttled`` (above ``max_fps``),
+``overwritten`` (read too late from the ring), ``starts``, ``restarts``.
+
+``python -m drivers.freenect_rgbd --stream [--fakenect DUMP --preload STUB.so]`` runs the driver
+alone and prints figures (a technician's check of a Kinect, and the benchmark in the docs).
 
 Stamps: the child's monotonic arrival time of the depth frame (CLOCK_MONOTONIC is the same in
 both processes), converted to the loop's clock.
@@ -117,7 +123,7 @@ class FreenectDepthCamera(DepthCamera):
     @classmethod
     def from_config(cls, cfg, clock, shared):
         o = cfg.options
-        check_timeout(cfg.name, cfg.timeout_s, 1.0 / o.get("max_fps", 15.0),
+        check_timeout(cfg.name, cfg.timeout_s, 1.0 / max(o.get("max_fps", 15.0), 1e-3),
                       "the pair period (1 / max_fps)")
         fx, fy, cx, cy = cls.DEFAULT_INTRINSICS
         return cls(cfg.name, clock, index=o.get("index", 0), timeout_s=cfg.timeout_s,
@@ -177,11 +183,6 @@ class FreenectDepthCamera(DepthCamera):
             raise DeviceOperationError(f"cannot start the libfreenect helper: {exc}") from None
         for f in (self._proc.stdout, self._proc.stderr):
             os.set_blocking(f.fileno(), False)
-        try:                                     # a bigger pipe: fewer wake-ups per frame
-            import fcntl
-            fcntl.fcntl(self._proc.stdout.fileno(), getattr(fcntl, "F_SETPIPE_SZ", 1031), 1 << 20)
-        except OSError:
-            pass
         self._buf = bytearray()
         self._err = b""
         self._errmsg = ""
