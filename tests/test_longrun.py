@@ -92,6 +92,7 @@ def test_blind_box_counts_the_collision_with_the_person_on_the_path(tmp_path):
     hits = [e for e in s["events"] if e["event"] == "collision"]
     assert len(hits) == s["collisions"]
     assert hits[0]["reason"].startswith("box said CLEAR")
+    assert hits[0]["seen_frames_10s"].startswith("0/") and hits[0]["last_seen_s_before"] is None
     # the box never stopped for anything after booting: no stop events of any kind
     assert s["stops_total"] == 0 and s["false_stop_s"] == 0.0
     # the files: CSV rows every 10 cycles, events, summary, a picture
@@ -140,6 +141,12 @@ def test_a_box_that_sees_the_truth_makes_only_true_stops_and_never_collides(tmp_
     assert 0.0 <= first["real_nearest_m"] <= first["stop_zone_m"] + 0.5
     # held at STOP before a real obstacle: the safety driver steered round it
     assert s["detours"] >= 1
+    # the forensics: this box saw the person in every frame it had in view
+    o = next(o for o in lr.field.world.obstacles if o.cls == "person")
+    seen = lr.seen_before(o, 14.0)
+    assert seen["last_seen_s_before"] is not None
+    n, total = map(int, seen["seen_frames_10s"].split("/"))
+    assert total == 100 and n >= 50
 
 
 def test_plateau_verdict():

@@ -54,7 +54,9 @@ CSV_FIELDS = ("t_s", "cycles", "distance_m", "lane", "x_m", "y_m", "speed_mps", 
               "pipeline_cpu_ms", "render_ms", "render_cpu_ms", "cycle_ms_p50", "cycle_ms_p99",
               "novel_fraction", "stereo_px_fraction")
 EVENT_FIELDS = ("t_s", "event", "kind", "x_m", "y_m", "lane", "speed_mps", "stop_zone_m",
-                "real_nearest_m", "obstacle", "reason")
+                "real_nearest_m", "obstacle", "seen_frames_10s", "last_seen_s_before",
+                "last_seen_ahead_m", "reason")
+HISTORY_S = 10.0            # what the box saw, kept to explain a collision
 
 
 def rss_mb() -> float:
@@ -190,6 +192,8 @@ class LongRun:
         self._win = {"pipe": [], "pipe_cpu": [], "render": [], "render_cpu": [], "cycle": [],
                      "novel": [], "stereo_px": []}
         self.grid_cells = None
+        from collections import deque
+        self._history = deque(maxlen=int(HISTORY_S * cfg.loop.rate_hz))
         self._path_s = self.vehicle._s
         self._spacing = 6.0
         if self.scene == "stubble-coverage":
@@ -242,6 +246,34 @@ class LongRun:
                 in_slow = True
         return in_stop, nearest, name, in_slow
 
+    # ---- what the box saw (collision forensics) ------------------------------------------------
+    def _remember(self, res, t_s: float) -> None:
+        """Keep the last HISTORY_S of the pipelines' points in world x, y (level vehicle), with
+        the front bumper's world position, to tell after a collision whether the box ever saw
+        the obstacle it hit."""
+        pts = [d.points_xy for d in res.detections.values() if len(d.points_xy)]
+        x, y, yaw = self.vehicle.pose()
+        c, s = math.cos(yaw), math.sin(yaw)
+        if pts:
+            p = np.concatenate(pts).astype(np.float64)
+            w = np.stack([x + p[:, 0] * c - p[:, 1] * s, y + p[:, 0] * s + p[:, 1] * c], 1)
+        else:
+            w = np.zeros((0, 2))
+        fx = self.zones.front_x_m
+        self._history.append((t_s, w.astype(np.float32), (x + fx * c, y + fx * s)))
+
+    def seen_before(self, o, t_s: float) -> dict:
+        """Frames of the last HISTORY_S with a box point within the obstacle's radius + 0.3 m
+        of its centre, when it was last seen and how far ahead of the front it was then."""
+        n, last, ahead = 0, None, None
+        for t, w, front in self._history:
+            if len(w) and np.any(np.hypot(w[:, 0] - o.x, w[:, 1] - o.y) <= o.radius + 0.3):
+                n += 1
+                last, ahead = t, math.hypot(o.x - front[0], o.y - front[1]) - o.radius
+        return {"seen_frames_10s": f"{n}/{len(self._history)}",
+                "last_seen_s_before": None if last is None else round(t_s - last, 1),
+                "last_seen_ahead_m": None if ahead is None else round(ahead, 2)}
+
     # ---- per cycle ---------------------------------------------------------------------------
     def on_cycle(self, res) -> None:
         from hal.types import GateState
@@ -281,13 +313,16 @@ class LongRun:
             x, y, _ = v.pose()
             for oid in v.obstacles_hit[self._prev_collisions:]:
                 o = next(ob for ob in self.field.world.obstacles if ob.id == oid)
+                seen = self.seen_before(o, t_s)
                 self.events.append({"t_s": round(t_s, 1), "event": "collision", "kind": o.cls,
                                     "x_m": round(x, 2), "y_m": round(y, 2), "lane": self.lane(),
                                     "speed_mps": None, "stop_zone_m": round(stop_len, 2),
                                     "real_nearest_m": 0.0, "obstacle": f"{o.id}/{o.cls}",
+                                    **seen,
                                     "reason": f"box said {state.value}: {res.output.reason}"})
             self._prev_collisions = v.collisions
         self._prev_state = state
+        self._remember(res, t_s)
         # figures
         cyc = sum(res.wall_ms.values())
         self._cycle_wall.append(cyc)
