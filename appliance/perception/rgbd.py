@@ -38,7 +38,8 @@ from appliance.config import _f
 from .base import Detections, Pipeline, SensorInputs
 from .rgbd_classes import RgbdClassModel
 from .rgbd_colour import COLOUR_SPACES, ColourClassifier, colour_features
-from .rgbd_decision import NOT_CLASSIFIED, Rule, decide, not_traversable, obstacle_groups
+from .rgbd_decision import (NOT_CLASSIFIED, Rule, decide, not_traversable, obstacle_groups,
+                            touching_ground)
 from .rgbd_slope import height_map, slope_map, steep_map, suspected_from
 from .rgbd_texture import classify_histograms, lbp_codes, to_grey, window_histograms, window_index
 
@@ -58,7 +59,8 @@ class RgbdPipelineConfig:
     dilate_px: int = _f(3, lo=1, hi=15, doc="square dilation of the suspected map (3 = paper)")
     morphology: str = _f("dilate", choices=("dilate", "close"),
                          doc="dilate (paper) or close the suspected map")
-    colour_threshold: float = _f(3.5, lo=0.1, hi=100.0, doc="Mahalanobis distance for a class")
+    colour_threshold: float = _f(4.5, lo=0.1, hi=100.0, doc="Mahalanobis distance for a class "
+                                                            "(the paper gives no value)")
     colour_lut_bits: int = _f(8, choices=(0, 6, 7, 8),
                               doc="classify colours through a lookup table of this many bits per "
                                   "channel (8 = exact, 16 MB, built once at start; 0 = "
@@ -74,8 +76,8 @@ class RgbdPipelineConfig:
     texture_window_px: int = _f(20, lo=3, hi=100)
     texture_threshold: float = _f(0.5, lo=0.0, hi=2.0, doc="chi-square distance for a class")
     min_pixels: int = _f(30, lo=1, hi=100000, doc="smallest obstacle group")
-    contact_px: int = _f(3, lo=1, hi=50, doc="surface within this many rows below a group "
-                                             "(paper: 1)")
+    contact_px: int = _f(1, lo=1, hi=50, doc="surface within this many rows below a group "
+                                             "(1 = the next row, the paper)")
     texture_contact_px: int = _f(20, lo=0, hi=100, doc="texture groups may touch the surface "
                                                        "this far below (0 = contact_px, paper)")
     ground_max_height_m: float = _f(0.25, lo=0.0, hi=5.0,
@@ -329,17 +331,27 @@ class RgbdPipeline(Pipeline):
         mask, n = obstacle_groups(cand, surface, o.hole_min_pixels, max(o.contact_px, 3))
         if n == 0:
             return mask, 0, np.zeros((0, 2), np.float32)
-        # bottom pixel of each column of the mask: its ray meets the ground at the contact
+        # bottom pixel of each column of the mask: its ray meets the ground at the contact --
+        # only where that column stands on the (near) surface
         h = mask.shape[0]
-        anyc = mask.any(0)
-        u = np.nonzero(anyc)[0]
+        u = np.nonzero(mask.any(0))[0]
         v = h - 1 - np.argmax(mask[::-1, u], axis=0)
-        ang = np.arctan((v - cam.cy) / cam.fy) + pitch           # below the horizontal
-        okg = ang > math.radians(0.5)
-        u, v, ang = u[okg], v[okg], ang[okg]
-        rng = mount.z_m / np.sin(ang)                           # range in the vertical plane
-        z = (rng * np.cos(np.arctan((v - cam.cy) / cam.fy))).astype(np.float32)
-        ok = (z >= lo) & (z <= hi)
+        foot = touching_ground(mask, surface, max(o.contact_px, 3))[v, u]
+        cut = v >= h - (o.slope_step_px + o.dilate_px // 2 + max(o.contact_px, 3))
+        # (a hole with a visible foot anywhere is placed by its feet; one grounded only beside
+        # its bottom columns, cut off by the image bottom, where the lowest ray meets the
+        # ground: it is at most that far. A hole with no surface next to it at all -- a blind
+        # sensor, something nearer than the sensor's minimum range -- is not placed: the depth
+        # camera's health and the other sensors deal with that)
+        keep = foot if foot.any() else cut
+        u, v = u[keep], v[keep]
+        t = (v - cam.cy) / cam.fy
+        ang = np.arctan(t) + pitch                              # below the horizontal
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rng = mount.z_m / np.sin(ang)                       # range in the vertical plane
+            z = (rng * np.cos(np.arctan(t))).astype(np.float32)
+        far = min(hi, o.hole_max_range_m) if o.hole_max_range_m > 0 else hi
+        ok = (ang > math.radians(0.5)) & (z >= lo) & (z <= far)
         if not ok.any():
             return mask, n, np.zeros((0, 2), np.float32)
         # a column of points up the face is not needed: the contact line is the obstacle's front
