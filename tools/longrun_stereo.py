@@ -189,8 +189,7 @@ class LongRun:
         self.counts = {"true": 0, "false": 0, "early": 0, "fault": 0}
         self.false_stop_s = 0.0
         self._cycle_wall: list[float] = []
-        self._win = {"pipe": [], "pipe_cpu": [], "render": [], "render_cpu": [], "cycle": [],
-                     "novel": [], "stereo_px": []}
+        self._win = {"cycle": [], "novel": [], "stereo_px": []}
         self.grid_cells = None
         from collections import deque
         self._history = deque(maxlen=int(HISTORY_S * cfg.loop.rate_hz))
@@ -762,6 +761,15 @@ def main(argv=None) -> int:
         return 0
     if not a.out:
         ap.error("--out is required")
+    from hal.errors import FieldguardError
+    try:
+        return _run_main(a, argv)
+    except (FieldguardError, OSError, ValueError) as exc:
+        print(f"longrun: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _run_main(a, argv) -> int:
     lr = LongRun(a.out, scene=a.scene, seed=a.seed, minutes=a.minutes,
                  stereo_scale=a.stereo_scale, pipelines=tuple(a.pipelines.split(",")),
                  matcher=a.matcher, config_file=a.config, every=a.every,
