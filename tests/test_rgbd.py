@@ -376,6 +376,23 @@ def test_decision_rule_paper_versus_ours():
     assert d0.texture is None and found(d0) == {"B"}
 
 
+def test_raised_level_surfaces_of_no_traversable_colour():
+    """The top of a box too near for its face to be in view is level and high: with the raised
+    cue, a group of such pixels of no traversable colour is an obstacle; a bush top is not."""
+    surface = _maps()
+    raised = np.zeros_like(surface)
+    raised[50:58, 5:15] = True                         # a box top (undefined colour)
+    raised[50:58, 30:40] = True                        # a bush top
+    colour = np.full(surface.shape, NOT_CLASSIFIED, np.int16)
+    colour[50:58, 5:15] = UNDEFINED
+    colour[50:58, 30:40] = 0
+    sus = np.zeros_like(surface)
+    rule = Rule((0, 1), 4)
+    d = decide(sus, surface, colour, None, rule, None, raised)
+    assert d.n_raised == 1 and d.obstacles[50:58, 5:15].all() and not d.obstacles[:, 30:40].any()
+    assert decide(sus, surface, colour, None, rule).n_raised == 0       # cue off
+
+
 def test_a_group_cut_off_by_the_image_bottom_stands_on_unseen_ground():
     cand = np.zeros((60, 80), bool)
     cand[45:60, 10:20] = True                          # reaches the last row, no surface seen

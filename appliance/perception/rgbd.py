@@ -90,6 +90,10 @@ class RgbdPipelineConfig:
                                          "ground the camera cannot see (paper: false)")
     min_height_m: float = _f(0.15, lo=0.0, hi=3.0, doc="a group must rise this high above the "
                                                        "ground plane (0 = any, paper)")
+    raised_surfaces: bool = _f(False, doc="level surfaces of no traversable colour between "
+                                          "min_height_m and raised_max_height_m above the "
+                                          "ground are obstacles (a box top seen from close)")
+    raised_max_height_m: float = _f(2.0, lo=0.0, hi=10.0)
     open_px: int = _f(0, lo=0, hi=15, doc="opening of the obstacle candidates before grouping "
                                           "(0 = none, the paper)")
     project_stride_px: int = _f(2, lo=1, hi=8, doc="project every n-th obstacle pixel in each "
@@ -139,6 +143,8 @@ class RgbdResult:
     groups_texture: int
     groups_holes: int
     points_xy: np.ndarray
+    raised_obstacles: np.ndarray | None = None
+    groups_raised: int = 0
 
 
 class RgbdPipeline(Pipeline):
@@ -179,7 +185,8 @@ class RgbdPipeline(Pipeline):
         return Detections(points_xy=r.points_xy, debug={
             "suspected_px": int(r.suspected.sum()), "obstacle_px": int(r.obstacles.sum()),
             "groups_colour": r.groups_colour, "groups_texture": r.groups_texture,
-            "groups_holes": r.groups_holes, "texture_ran": r.texture_class is not None})
+            "groups_holes": r.groups_holes, "groups_raised": r.groups_raised,
+            "texture_ran": r.texture_class is not None})
 
     def analyse(self, inputs: SensorInputs, detail: bool = True) -> RgbdResult:
         """One frame, every intermediate map in the result; ``detail=False`` (process()) skips
@@ -207,35 +214,41 @@ class RgbdPipeline(Pipeline):
         slope = slope_map(depth_s, cam.fy, cam.cy, pitch, lo, hi, o.slope_step_px) \
             if detail else None
         height = None
-        if o.min_height_m > 0 or o.ground_max_height_m > 0:
+        if o.min_height_m > 0 or o.ground_max_height_m > 0 or o.raised_surfaces:
             height = height_map(depth_s, cam.fy, cam.cy, pitch, mount.z_m)
         if o.ground_max_height_m > 0:
             # our addition: bush tops are level too, but an obstacle stands on the ground
             surface &= height < np.float32(o.ground_max_height_m)
+
+        raised = None
+        if o.raised_surfaces:
+            raised = level & ~sus & (height >= np.float32(max(o.min_height_m, 0.05))) & \
+                (height < np.float32(o.raised_max_height_m))
+        want = sus if raised is None else sus | raised
 
         # 2. colour classes of the suspected pixels (the whole frame through the lookup table:
         # one gather per pixel is cheaper than picking the suspected ones out)
         cfull = None
         if self.colour.lut_ready():
             cfull = self.colour.classify_image(color)
-            cmap = np.where(sus, cfull, np.int16(NOT_CLASSIFIED))
+            cmap = np.where(want, cfull, np.int16(NOT_CLASSIFIED))
         else:
             cmap = np.full(sus.shape, NOT_CLASSIFIED, np.int16)
-            cmap[sus] = self.colour.classify(colour_features(color[sus], o.colour_space))
+            cmap[want] = self.colour.classify(colour_features(color[want], o.colour_space))
 
         # 3. texture, and 4. the decision
         tmap = None
         if o.texture == "always":
             tmap = self._texture_map(color, sus)
-            d = decide(sus, surface, cmap, tmap, self.rule, height)
+            d = decide(sus, surface, cmap, tmap, self.rule, height, raised)
         else:
-            d = decide(sus, surface, cmap, None, self.rule, height)
+            d = decide(sus, surface, cmap, None, self.rule, height, raised)
             if o.texture == "after-colour" and d.n_colour > 0:
                 tmap = self._texture_map(color, sus)
-                d = decide(sus, surface, cmap, tmap, self.rule, height)
+                d = decide(sus, surface, cmap, tmap, self.rule, height, raised)
         col_obs, tex_obs, n_col, n_tex = d.colour, d.texture, d.n_colour, d.n_texture
 
-        obs = col_obs | tex_obs if tex_obs is not None else col_obs.copy()
+        obs = d.obstacles
         proj = obs
         if o.occlusion_filter and obs.any():
             # eq. 4 marks the upper pixel of a pair, so at an occlusion edge (the top of a box)
@@ -258,7 +271,7 @@ class RgbdPipeline(Pipeline):
                 pts = np.concatenate([pts, hpts])
             obs = obs | hole_obs
         return RgbdResult(slope, sus, surface, cmap, tmap, col_obs, tex_obs, hole_obs, obs,
-                          n_col, n_tex, n_holes, pts)
+                          n_col, n_tex, n_holes, pts, d.raised, d.n_raised)
 
     # ------------------------------------------------------------------------------------------
     def _texture_map(self, color: np.ndarray, sus: np.ndarray) -> np.ndarray:

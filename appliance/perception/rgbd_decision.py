@@ -160,10 +160,15 @@ class Decision:
     texture: np.ndarray | None           # bool: pixels of texture obstacle groups (None: no texture)
     n_colour: int
     n_texture: int
+    raised: np.ndarray | None = None     # bool: raised level surfaces of no traversable colour
+    n_raised: int = 0
 
     @property
     def obstacles(self) -> np.ndarray:
-        return self.colour | self.texture if self.texture is not None else self.colour.copy()
+        out = self.colour | self.texture if self.texture is not None else self.colour.copy()
+        if self.raised is not None:
+            out |= self.raised
+        return out
 
 
 def _blocked(class_map: np.ndarray, rule: Rule, low: np.ndarray | None,
@@ -195,14 +200,16 @@ def _blocked(class_map: np.ndarray, rule: Rule, low: np.ndarray | None,
 
 def decide(suspected: np.ndarray, surface: np.ndarray, colour_class: np.ndarray,
            texture_class: np.ndarray | None, rule: Rule,
-           height_m: np.ndarray | None = None) -> Decision:
+           height_m: np.ndarray | None = None, raised: np.ndarray | None = None) -> Decision:
     """The obstacle decision from the cues.
 
     ``suspected``/``surface``: bool maps from the slope step (``surface`` already limited to low
     ground when the rule asks for it); ``colour_class``/``texture_class``: int class maps
     (NOT_CLASSIFIED outside the suspected pixels, UNDEFINED where no class is near enough;
     ``texture_class`` None = texture did not run); ``height_m``: height above the ground plane
-    (needed by ``ground_classes``)."""
+    (needed by ``ground_classes``); ``raised``: level pixels well above the ground (the top of a
+    box too near for its face to be in view, a bush top) -- a group of them of no traversable
+    colour (``colour_class`` must hold their classes too) is an obstacle."""
     low = tall = None
     if rule.ground_classes and rule.ground_max_height_m > 0 and height_m is not None:
         low = height_m < np.float32(rule.ground_max_height_m)
@@ -212,8 +219,13 @@ def decide(suspected: np.ndarray, surface: np.ndarray, colour_class: np.ndarray,
                bottom_rows=rule.bottom_rows, tall=tall)
     colour_blocked = _blocked(colour_class, rule, low)
     col, n_col = obstacle_groups(suspected & colour_blocked, surface, **grp)
+    ras, n_ras = None, 0
+    if raised is not None:
+        # a raised level patch stands on something by definition: no contact needed
+        ras, n_ras = obstacle_groups(raised & colour_blocked, np.ones_like(raised),
+                                     rule.min_pixels, 1)
     if texture_class is None:
-        return Decision(col, None, n_col, 0)
+        return Decision(col, None, n_col, 0, ras, n_ras)
     if rule.texture_role == "traversable-colour":
         cand = suspected & ~colour_blocked & _blocked(texture_class, rule, low,
                                                       rule.texture_undefined)
@@ -221,4 +233,4 @@ def decide(suspected: np.ndarray, surface: np.ndarray, colour_class: np.ndarray,
         cand = suspected & _blocked(texture_class, rule, low, rule.texture_undefined)
     grp["contact_px"] = rule.texture_contact_px or rule.contact_px
     tex, n_tex = obstacle_groups(cand, surface, **grp)
-    return Decision(col, tex, n_col, n_tex)
+    return Decision(col, tex, n_col, n_tex, ras, n_ras)
