@@ -204,34 +204,36 @@ def test_daemon_runs_the_rgbd_pipeline_from_the_kinect(greenhouse_dump, stub, tm
     dev = rig.daemon.devices["rgbd"]
     period = 1 / 15.0
 
-    def rgbd_fault(c):
-        return any(f.startswith("rgbd:") for f in c[2])
+    def first_fault(since, text):
+        return next((c for c in list(rig.cycles) if c[0] >= since
+                     and any(f.startswith("rgbd:") and text in f for f in c[2])), None)
 
     try:
         # the pipeline runs on the Kinect's frames: fault-free cycles on fresh frames
         assert wait_for(lambda: len({c[3]["rgbd"] for c in rig.cycles if not c[2]}) >= 3,
                         10.0), rig.cycles[-3:]
         t_ok = next(c[0] for c in rig.cycles if not c[2])
+        # (under load the first fault-free cycle can come after the gap: each event is looked
+        # for by its own fault text, in this replay or the next one after the restart)
         # the Kinect goes silent (the dump's 0.6 s gap, inside libfreenect): STOP within two
         # cycles of the frame that did not come
-        assert wait_for(lambda: rig.silence_stop_cycles("rgbd", period, t_ok) is not None, 4.0)
-        assert rig.silence_stop_cycles("rgbd", period, t_ok) <= 2
-        first = next(c for c in rig.cycles if c[0] >= t_ok and rgbd_fault(c))
-        assert "stale" in " ".join(first[2]) and first[1] == "STOP"
-        assert wait_for(lambda: any("stale" in " ".join(c[2]) for c in rig.cycles
-                                    if c[0] > first[0] + 300_000_000), 2.0)   # it lasts: the gap
-        # frames again: the faults clear
-        assert wait_for(lambda: not rig.cycles[-1][2], 3.0), rig.cycles[-1]
-        t_back = rig.cycles[-1][0]
+        assert wait_for(lambda: rig.silence_stop_cycles("rgbd", period, t_ok, "stale")
+                        is not None, 6.0), rig.cycles[-1][:3]
+        assert rig.silence_stop_cycles("rgbd", period, t_ok, "stale") <= 2
+        first = first_fault(t_ok, "stale")
+        assert first[1] == "STOP"
+        assert wait_for(lambda: first_fault(first[0] + 300_000_000, "stale") is not None,
+                        2.0)                                    # it lasts: the gap
         # the end of the dump (libfreenect returns an error): STOP within two cycles
         ended = "process_events returned -1"
-        assert wait_for(lambda: rig.silence_stop_cycles("rgbd", period, t_back, ended)
-                        is not None, 4.0)
-        assert rig.silence_stop_cycles("rgbd", period, t_back, ended) <= 2
-        end = next(c for c in rig.cycles if c[0] >= t_back and ended in " ".join(c[2]))
+        assert wait_for(lambda: rig.silence_stop_cycles("rgbd", period, t_ok, ended)
+                        is not None, 6.0), rig.cycles[-1][:3]
+        assert rig.silence_stop_cycles("rgbd", period, t_ok, ended) <= 2
+        end = first_fault(t_ok, ended)
         assert end[1] == "STOP"
-        # replayed from the start after the back-off: the faults clear again
-        assert wait_for(lambda: not rig.cycles[-1][2], 6.0), rig.cycles[-1]
+        # frames again after each: the faults clear (after the end: replayed from the start)
+        for t in (first[0], end[0]):
+            assert wait_for(lambda: any(not c[2] for c in list(rig.cycles) if c[0] > t), 6.0)
         assert dev.counters["restarts"] >= 1
     finally:
         rig.close()
