@@ -159,6 +159,10 @@ class StrobeSerialTrigger(StrobeTrigger):
         o = cfg.options
         check_timeout(cfg.name, cfg.timeout_s, o.get("status_period_s", 0.1),
                       "the status period (status_period_s)")
+        if o.get("night_below", 35.0) >= o.get("day_above", 60.0):
+            from hal.errors import ConfigError
+            raise ConfigError("must be lower than day_above (that gap is the hysteresis)",
+                              key=f"devices.{cfg.name}.night_below")
         return cls(cfg.name, clock, port=o.get("port", "/dev/fieldguard-strobe"),
                    baudrate=o.get("baudrate", 115200), timeout_s=cfg.timeout_s,
                    rate_hz=o.get("rate_hz", 10.0), strobe=o.get("strobe", False),

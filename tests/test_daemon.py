@@ -118,3 +118,26 @@ def test_bad_run_folder_is_a_clear_error(tmp_path, capsys):
     (tmp_path / "run").mkdir()
     assert main(["run", "--replay", str(tmp_path / "run"), "--fast"]) == 2
     assert "run.toml" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("table, period", [
+    ({"rgbd": {"type": "freenect", "timeout_s": 0.06}}, "1 / max_fps"),
+    ({"rgbd": {"type": "freenect", "max_fps": 5.0, "timeout_s": 0.13}}, "1 / max_fps"),
+    ({"trigger": {"type": "serial", "timeout_s": 0.1}}, "status_period_s"),
+    ({"stereo": {"type": "aravis", "left": "a", "right": "b", "calibration": "c.json",
+                 "rate_hz": 5.0}}, "1 / rate_hz"),
+    ({"laser": {"type": "sick-lms1xx", "timeout_s": 0.03}}, "25 Hz"),
+    ({"trigger": {"type": "serial", "night_below": 60.0}}, None)])
+def test_hardware_settings_that_cannot_work_stop_start_up(table, period):
+    """A timeout not longer than the device's period (it would never be fresh: a STOP that
+    never clears, for a typo) or day/night thresholds without a gap: ConfigError at start."""
+    from appliance.config import parse_config
+    from appliance.daemon import Daemon
+    from hal.errors import ConfigError
+    cfg = parse_config({"devices": {**table, "link": {"type": "log"}}}, "hw.toml")
+    d = Daemon(cfg, mode="hardware", serve_status=False)
+    pattern = (r"night_below\] must be lower than day_above" if period is None else
+               r"timeout_s .* must be longer than .*" + period.replace("(", r"\("))
+    with pytest.raises(ConfigError, match=pattern):
+        d.start()
+    d.shutdown()
