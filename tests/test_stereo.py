@@ -124,6 +124,14 @@ def test_ground_search_range_keeps_every_point_above_the_ground_and_narrows_the_
     w = wall[top:foot, 250:390]
     assert dmin <= w.min() and w.max() < dmin + n
     assert n < nd                                     # a wall 12 m away needs less than nd
+    # something nearer seen in the box by the coarse pass widens the search to cover it
+    near = float(wall[top:foot, 250:390].max()) + 40.0
+    dmin2, n2 = ground_search_range(c, (250, top, 390, foot + 1), nd, foot_row=foot,
+                                    seen_max_disp=near)
+    assert dmin2 + n2 >= near and dmin2 <= w.min()
+    dmin3, n3 = ground_search_range(c, (250, top, 390, foot + 1), nd, foot_row=foot,
+                                    seen_max_disp=10 * nd)
+    assert dmin3 + n3 >= nd                           # never past min_depth_m's disparity
 
 
 def test_strips_cover_the_box_with_their_own_ranges():
