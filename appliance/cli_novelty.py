@@ -116,7 +116,7 @@ def cmd_novelty(a) -> int:
     names = [n for n, _ in inputs]
     if len(set(names)) != len(names):
         raise FieldguardError("two inputs have the same name; outputs would overwrite each other")
-    det = NoveltyDetector(o, background=True)
+    det = NoveltyDetector(o, background=True, exact_scores=True)   # the .npy shows every score
     reader = _Frames()
     try:
         if learn:

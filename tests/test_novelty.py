@@ -133,6 +133,26 @@ def test_screened_density_decides_exactly_like_the_full_query():
         assert np.all(got[~low] >= rho) and np.all(got <= full * (1 + 1e-9))
 
 
+def test_detector_scores_exact_for_novel_cells_or_everywhere_on_request():
+    o = StereoNoveltyConfig(cell_px=32, rho=1e4)
+    grass = _real("grass.png")
+    other = _real("brick.png")[:grass.shape[0], :grass.shape[1]]
+    img = grass.copy()
+    img[:, : img.shape[1] // 2] = other[:, : img.shape[1] // 2]        # half new texture
+    fast, exact = NoveltyDetector(o, background=False), NoveltyDetector(o, background=False,
+                                                                        exact_scores=True)
+    for d in (fast, exact):
+        d.learn(d.detect(grass), force=True)
+    a, b = fast.detect(img), exact.detect(img)
+    np.testing.assert_array_equal(a.raw, b.raw)                       # the same novel cells
+    assert a.raw.any() and (~a.raw).any()
+    np.testing.assert_allclose(a.score[a.raw], b.score[a.raw], rtol=1e-5)
+    assert np.all(a.score[~a.raw] >= b.score[~a.raw] - 1e-4)          # upper bound elsewhere
+    ref = -np.log10(np.maximum(exact.model.density(b.descriptors.reshape(-1, 8)), 1e-300))
+    finite = np.isfinite(b.score.ravel())
+    np.testing.assert_allclose(b.score.ravel()[finite], ref[finite], rtol=1e-5)
+
+
 # ---- forgetting and pruning (eqs. 6, 7, 9) ------------------------------------------------
 def test_weights_first_one_then_lambda_with_decay():
     lam = 0.2

@@ -556,8 +556,11 @@ class NoveltyDetector:
     """Descriptors, density, masks and learning. ``options`` is any object with the novelty
     fields of :class:`appliance.perception.stereo_novelty.StereoNoveltyConfig`."""
 
-    def __init__(self, options, background: bool = True):
+    def __init__(self, options, background: bool = True, exact_scores: bool = False):
+        """``exact_scores``: the full density for every cell (offline tools that show the
+        scores); by default only the novel cells' scores are exact (the loop needs the mask)."""
         o = options
+        self.exact_scores = exact_scores
         self.o = o
         self.scale = np.asarray(o.descriptor_scale, np.float32)
         if self.scale.shape != (D,):
@@ -591,7 +594,9 @@ class NoveltyDetector:
             score = np.full((rows, cols), np.inf, np.float32)
         else:
             # exact below rho (the novel cells), a lower bound on the density above it
-            p = self.model.density_screened(x.reshape(-1, D), self.o.rho).reshape(rows, cols)
+            q = x.reshape(-1, D)
+            p = (self.model.density(q) if self.exact_scores
+                 else self.model.density_screened(q, self.o.rho)).reshape(rows, cols)
             with np.errstate(divide="ignore"):
                 score = (-np.log10(p)).astype(np.float32)
         raw = (score > self._log_rho) & valid
