@@ -370,6 +370,8 @@ def cmd_variants(a) -> int:
         "+ opening of the candidates (open_px = 3)": {"options": {**base, "open_px": 3}},
         "+ raised level surfaces (raised_surfaces = true)": {
             "options": {**base, "raised_surfaces": True}},
+        "+ raised level surfaces at the image bottom only (raised_bottom_only = true)": {
+            "options": {**base, "raised_surfaces": True, "raised_bottom_only": True}},
         "colour only (texture = off)": {"options": {**base, "texture": "off"}},
         "exact colour per pixel (colour_lut_bits = 0), every pixel projected": {
             "options": {**base, "colour_lut_bits": 0, "project_stride_px": 1}},

@@ -94,6 +94,8 @@ class RgbdPipelineConfig:
                                           "min_height_m and raised_max_height_m above the "
                                           "ground are obstacles (a box top seen from close)")
     raised_max_height_m: float = _f(2.0, lo=0.0, hi=10.0)
+    raised_bottom_only: bool = _f(False, doc="raised level surfaces count only where they reach "
+                                             "the image bottom (a near box's top)")
     open_px: int = _f(0, lo=0, hi=15, doc="opening of the obstacle candidates before grouping "
                                           "(0 = none, the paper)")
     project_stride_px: int = _f(2, lo=1, hi=8, doc="project every n-th obstacle pixel in each "
@@ -180,7 +182,8 @@ class RgbdPipeline(Pipeline):
                          min_pixels=o.min_pixels, contact_px=o.contact_px, open_px=o.open_px,
                          bottom_rows=(o.slope_step_px + o.dilate_px // 2 + o.contact_px)
                          if o.bottom_grounded else 0,
-                         texture_contact_px=o.texture_contact_px, min_height_m=o.min_height_m)
+                         texture_contact_px=o.texture_contact_px, min_height_m=o.min_height_m,
+                         raised_bottom_only=o.raised_bottom_only)
 
     # ------------------------------------------------------------------------------------------
     def process(self, inputs: SensorInputs) -> Detections:

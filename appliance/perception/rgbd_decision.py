@@ -148,6 +148,7 @@ class Rule:
     bottom_rows: int = 0                 # a group in the last rows stands on the ground (0: no)
     texture_contact_px: int = 0          # contact_px of texture groups (0: contact_px)
     min_height_m: float = 0.0            # a group must rise this high above the ground (0: any)
+    raised_bottom_only: bool = False     # raised level patches count only at the image bottom
 
     @classmethod
     def paper(cls, traversable, n_classes: int, min_pixels: int = 30, contact_px: int = 1):
@@ -221,9 +222,15 @@ def decide(suspected: np.ndarray, surface: np.ndarray, colour_class: np.ndarray,
     col, n_col = obstacle_groups(suspected & colour_blocked, surface, **grp)
     ras, n_ras = None, 0
     if raised is not None:
-        # a raised level patch stands on something by definition: no contact needed
-        ras, n_ras = obstacle_groups(raised & colour_blocked, np.ones_like(raised),
-                                     rule.min_pixels, 1)
+        # a raised level patch stands on something by definition: no contact needed -- unless
+        # the rule asks for patches cut off by the image bottom only (the top of a box too near
+        # for its face and foot to be in view)
+        if rule.raised_bottom_only and rule.bottom_rows > 0:
+            ras, n_ras = obstacle_groups(raised & colour_blocked, np.zeros_like(raised),
+                                         rule.min_pixels, 1, bottom_rows=rule.bottom_rows)
+        else:
+            ras, n_ras = obstacle_groups(raised & colour_blocked, np.ones_like(raised),
+                                         rule.min_pixels, 1)
     if texture_class is None:
         return Decision(col, None, n_col, 0, ras, n_ras)
     if rule.texture_role == "traversable-colour":
