@@ -392,7 +392,7 @@ def test_raised_level_surfaces_of_no_traversable_colour():
     assert d.n_raised == 1 and d.obstacles[50:58, 5:15].all() and not d.obstacles[:, 30:40].any()
     assert decide(sus, surface, colour, None, rule).n_raised == 0       # cue off
     # at the image bottom only: the box top must reach the last rows
-    bottom = Rule((0, 1), 4, bottom_rows=3, raised_bottom_only=True)
+    bottom = Rule((0, 1), 4, bottom_rows=2, raised_bottom_only=True)
     assert decide(sus, surface, colour, None, bottom, None, raised).n_raised == 0
     raised[50:60, 5:15] = True
     colour[50:60, 5:15] = UNDEFINED
