@@ -116,7 +116,8 @@ class LongRun:
                  pipelines=("stereo-novelty",), matcher: str | None = "sgbm",
                  config_file: str | None = None, overrides: dict | None = None,
                  every: int = 50, zone_tol_m: float = 0.5, lateral_tol_m: float = 0.2,
-                 plot: bool = True, progress: bool = True, command: str = ""):
+                 plot: bool = True, progress: bool = True, command: str = "",
+                 sync_updates: bool = True):
         self.out = Path(out_dir)
         self.scene, self.seed = scene, int(seed)
         self.minutes = float(minutes)
@@ -129,6 +130,7 @@ class LongRun:
         self.zone_tol_m, self.lateral_tol_m = float(zone_tol_m), float(lateral_tol_m)
         self.plot, self.progress = plot, progress
         self.command = command
+        self.sync_updates = bool(sync_updates)
         self.daemon = None
         self.field = None
         self.events: list[dict] = []
@@ -341,9 +343,17 @@ class LongRun:
                         if self._novelty else None
         for nd in self._novelty:
             u = nd.updater
+            if self.sync_updates and u is not None:
+                # real time gives the update thread the rest of the 100 ms period (an update
+                # takes ~10 ms); --fast does not: wait here, outside the loop's cycle, so the
+                # new model is in place by the next frame, as on a vehicle, and the run is
+                # reproducible
+                u.wait_idle(30.0)
             if u is not None and u.done > self._updates_seen:
                 self._updates_seen = u.done
                 self._update_s.append(u.last_update_s)
+        if self.sync_updates and self._novelty and samples is not None:
+            samples = self._novelty[0].model.size       # after the wait: not racy
         if res.index % self.every == 0:
             self._row(res, samples)
         if self.progress and res.index % 10 == 0:
@@ -431,6 +441,7 @@ class LongRun:
             [self.field.stereo_calibration.camera.width,
              self.field.stereo_calibration.camera.height],
             "pipelines": list(self.pipeline_names),
+            "sync_updates": self.sync_updates,
             "simulated_s": round(cycles / self.cfg.loop.rate_hz, 1), "cycles": cycles,
             "distance_m": st["distance_m"], "lanes_reached": self.lane() + 1,
             "path_length_m": st["path_length_m"], "finished_path": st["finished"],
@@ -753,6 +764,9 @@ def main(argv=None) -> int:
     ap.add_argument("--every", type=int, default=50, help="cycles per CSV row (default 50)")
     ap.add_argument("--zone-tol", type=float, default=0.5, help="m along the stop zone")
     ap.add_argument("--lateral-tol", type=float, default=0.2, help="m across the stop zone")
+    ap.add_argument("--free-running", action="store_true",
+                    help="do not wait for the novelty model's update thread after each cycle "
+                         "(as fast as the CPU allows; the run is then not reproducible)")
     ap.add_argument("--replot", metavar="DIR", help="only draw DIR/longrun.png again")
     a = ap.parse_args(argv)
     if a.replot:
@@ -774,6 +788,7 @@ def _run_main(a, argv) -> int:
                  stereo_scale=a.stereo_scale, pipelines=tuple(a.pipelines.split(",")),
                  matcher=a.matcher, config_file=a.config, every=a.every,
                  zone_tol_m=a.zone_tol, lateral_tol_m=a.lateral_tol,
+                 sync_updates=not a.free_running,
                  command="python tools/longrun_stereo.py " + " ".join(
                      sys.argv[1:] if argv is None else argv))
     lr.build()
