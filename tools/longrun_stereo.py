@@ -24,6 +24,10 @@ Accounting, every cycle, against the simulator's truth (all obstacles, hit ones 
   reason is a fault, not an obstacle. The boot STOP is not an event.
 - false-stop time: cycles in STOP (for an obstacle) with nothing real in the stop zone.
 
+Reproducible: after each cycle the tool waits for the novelty model's update thread (on a
+vehicle the update finishes well inside the 100 ms period; with ``--fast`` it would race the
+loop and make every run different). ``--free-running`` skips the wait.
+
 Writes to ``--out``: ``longrun.csv`` (one row every ``--every`` cycles), ``events.csv`` (every
 STOP event and collision), ``summary.json``, ``longrun.png`` (cv2 drawing), ``config.toml``
 (the config the daemon ran). Times: the loop's stages are timed in wall time (inflated on a
