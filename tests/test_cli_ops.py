@@ -75,6 +75,14 @@ def test_selftest_fails_a_dead_device_with_a_fix(daemon, capsys):
 def test_record_then_replay(daemon, tmp_path, capsys):
     d, sock, _ = daemon
     out = tmp_path / "rec"
+    # the test before this one unplugs the laser: record only once it streams again, so the
+    # first recorded frame has a scan (a stale device is recorded as no scan, rightly)
+    from hal.health import Health
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and \
+            d.devices["laser"].health(d.clock.now_ns()).state is not Health.OK:
+        time.sleep(0.1)
+    time.sleep(0.3)
     assert main(["record", "--seconds", "1.0", "--out", str(out), "--socket", sock]) == 0
     deadline, last = time.monotonic() + 20, -1
     while time.monotonic() < deadline:        # wait until the writer has finished the folder

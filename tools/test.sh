@@ -4,5 +4,8 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 bash tools/hw_system_deps.sh   # Debian: aravis + fake GigE camera, socat, iproute2, build deps
 bash tools/setup.sh
+# again, now that .venv exists: its Python half (the freenect binding, built against the
+# libfreenect headers installed above) is skipped while there is no .venv
+bash tools/hw_system_deps.sh
 bash tools/ci_system_deps.sh   # headless MAVProxy
 exec .venv/bin/python -m pytest "$@"
