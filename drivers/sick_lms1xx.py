@@ -7,9 +7,15 @@ parses every ``sSN LMDscandata`` telegram it receives into a :class:`hal.LaserSc
 CoLa-A frames are ``STX (0x02) <ASCII tokens separated by spaces> ETX (0x03)``. They carry no
 checksum (CoLa-B does), so the integrity checks are the framing and the telegram's own structure:
 every number must parse, the channel's value count must match the values present and the
-trailer must follow. A telegram that fails is counted (``bad_telegrams``) and marks the device
-FAULT until the next good scan; bytes outside frames are counted (``garbage_bytes``); a frame cut
-off by a new STX is counted (``truncated``). A TCP connection that closes or resets marks FAULT at
+trailer must follow, and the scan layout (DIST1 beam count, start angle, step, scale factor and
+offset, scan frequency) must be the one the previous telegram on this connection had: a device
+does not change it while streaming, so a change is a corrupted header that still parses (one
+flipped bit in the start angle would rotate the whole scan). A telegram that fails is counted
+(``bad_telegrams``) and marks the device FAULT; bytes outside frames are counted
+(``garbage_bytes``); a frame cut off by a new STX is counted (``truncated``). Each of these holds
+the FAULT for ``fault_hold_s`` (scans arriving meanwhile are discarded) so the loop sees it. A
+corrupted *range value* that is still a valid 16-bit hex number cannot be told from a real one
+(CoLa-A has no checksum): such a scan is used as it came. A TCP connection that closes or resets marks FAULT at
 once and reconnects with exponential back-off; a connection that stays silent for ``silence_s``
 is dropped and reconnected (the base class has already marked the data stale after
 ``timeout_s``).
@@ -41,6 +47,8 @@ from .calibration import MOUNT_SCHEMA, Backoff, mount_from_options
 STX, ETX = 0x02, 0x03
 _WIRE_ERRORS = {"garbage_bytes": "byte(s) outside any telegram",
                 "truncated": "telegram(s) cut short", "overflows": "overlong telegram(s)"}
+_LAYOUT_FIELDS = ("beams", "start angle", "angle step", "scale factor", "scale offset",
+                  "scan frequency")
 DEFAULT_PORT = 2111
 CLIENT_PASSWORD = "F4724744"     # SOPAS "authorised client" (level 03), the documented default
 
@@ -283,6 +291,7 @@ class SickLms1xxLaser(SafetyLaser):
         self._last_rx = 0.0
         self._geometry: LaserGeometry | None = None
         self._last_counter: int | None = None
+        self._layout: tuple | None = None     # the scan layout of the previous telegram
         self.last_telegram: ScanTelegram | None = None
         self.last_rssi: np.ndarray | None = None
         self.device_ident = ""
@@ -331,6 +340,7 @@ class SickLms1xxLaser(SafetyLaser):
         self._sock = None
         self.framer.reset()
         self._last_counter = None
+        self._layout = None
         self._lost(self.backoff, "disconnects", reason)
 
     def _command(self, text: str, expect: bytes, timeout_s: float = 0.5) -> bytes:
@@ -389,6 +399,7 @@ class SickLms1xxLaser(SafetyLaser):
                                        f"{exc.strerror or exc}") from None
         self._sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self.framer.reset()
+        self._layout = None                   # a new connection may bring a new configuration
         self._last_rx = time.monotonic()
         ident = self._command("sRN DeviceIdent", b"sRA DeviceIdent")
         w = ident.decode("ascii", "replace").split()
@@ -431,12 +442,23 @@ class SickLms1xxLaser(SafetyLaser):
             self._count("bad_telegrams")
             self._wire_error(str(exc))
             return
+        ch = tel.channels16["DIST1"]
+        layout = (len(ch.values), ch.start_deg, ch.step_deg, ch.scale, ch.offset,
+                  tel.scan_frequency_hz)
+        prev, self._layout = self._layout, layout
+        if prev is not None and layout != prev:
+            # the next telegram with the same layout is accepted again (after fault_hold_s):
+            # a real reconfiguration costs one discarded scan and the hold
+            self._count("bad_telegrams")
+            self._wire_error("bad telegram: the scan layout changed mid-stream (" + ", ".join(
+                f"{n} {a:g}, was {b:g}" for n, a, b in zip(_LAYOUT_FIELDS, layout, prev)
+                if a != b) + ")")
+            return
         if self._last_counter is not None:
             gap = (tel.telegram_counter - self._last_counter - 1) & 0xFFFF
             if 0 < gap < 1000:
                 self._count("missed_scans", gap)
         self._last_counter = tel.telegram_counter
-        ch = tel.channels16["DIST1"]
         g = self._geometry
         amin = ch.start_deg + self.angle_offset_deg
         if (g is None or g.beams != len(ch.values) or abs(g.angle_min_deg - amin) > 1e-6

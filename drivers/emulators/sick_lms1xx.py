@@ -18,12 +18,18 @@ Commands on stdin, one per line:
     silent | resume          stop / restart sending scans (connections stay open)
     garbage N                send N random bytes between two telegrams
     truncate                 send the next telegram cut off half-way (the rest never comes)
-    corrupt                  send the next telegram with a value that is not hexadecimal
+    corrupt [angle]          send the next telegram with a value that is not hexadecimal
+                             (``angle``: with one bit of the start angle flipped instead, a
+                             telegram that still parses but is rotated by 6.55 deg)
     split on|off             send every telegram in small pieces with short pauses
     drop                     close every client connection now (the cable is pulled)
     object X_M [WIDTH_M]     put a post X_M metres straight ahead of the scanner
     clear                    remove the post
     quit
+
+Each fault is recorded when its bytes go on the wire (``injected``: (fault, time.monotonic_ns()),
+and a ``{"event": "injected", ...}`` line on stdout), so a test can count cycles from the moment
+the fault reached the wire rather than from the command.
 
 The telegram encoder here is written separately from the driver's parser on purpose, and is
 cross-checked against an independent client (``sick-scan-tcp``) in the tests.
@@ -59,12 +65,15 @@ def _hf(f: float) -> str:
 def encode_scandata(ranges_m: np.ndarray, start_deg_sick: float, step_deg: float, *,
                     telegram_counter: int, scan_counter: int, time_us: int,
                     scan_hz: float = 25.0, serial: int = 0x89A27F,
-                    rssi: np.ndarray | None = None, method: str = "sSN") -> bytes:
+                    rssi: np.ndarray | None = None, method: str = "sSN",
+                    scale: float | None = None) -> bytes:
     """One LMDscandata telegram (with STX/ETX) in the LMS1xx layout. ``ranges_m`` NaN or <= 0 =
-    no return (sent as 0); ``start_deg_sick`` in SICK's convention (90 deg = ahead)."""
+    no return (sent as 0); ``start_deg_sick`` in SICK's convention (90 deg = ahead); ``scale``:
+    the scale factor (None: 1, or 2 when a range is 65 m or more)."""
     r = np.asarray(ranges_m, dtype=np.float64)
     valid = np.isfinite(r) & (r > 0)
-    scale = 1.0 if np.nanmax(np.where(valid, r, 0.0), initial=0.0) < 65.0 else 2.0
+    if scale is None:
+        scale = 1.0 if np.nanmax(np.where(valid, r, 0.0), initial=0.0) < 65.0 else 2.0
     mm = np.where(valid, np.round(r * 1000.0 / scale), 0).clip(0, 65535).astype(np.int64)
     start = int(round(start_deg_sick * 10000))
     step = int(round(step_deg * 10000))
@@ -124,7 +133,12 @@ class SickLms1xxEmulator:
         self.split = False
         self._garbage = 0
         self._truncate = False
-        self._corrupt = False
+        self._corrupt: str | None = None        # None | "hex" | "angle"
+        # a device's scale factor does not change while it streams (the driver checks that)
+        top = max(float(np.nanmax(np.where(np.isfinite(s), s, 0.0), initial=0.0))
+                  for s in self.scans)
+        self.scale = 1.0 if top < 65.0 else 2.0
+        self.injected: collections.deque = collections.deque(maxlen=64)  # (fault, monotonic ns)
         self._post: tuple[float, float] | None = None
         self._lock = threading.Lock()
         self._clients: list[socket.socket] = []
@@ -171,8 +185,10 @@ class SickLms1xxEmulator:
     def truncate_next(self) -> None:
         self._truncate = True
 
-    def corrupt_next(self) -> None:
-        self._corrupt = True
+    def corrupt_next(self, how: str = "hex") -> None:
+        if how not in ("hex", "angle"):
+            raise ValueError(f"corrupt: unknown kind {how!r} (hex or angle)")
+        self._corrupt = how
 
     def put_post(self, x_m: float | None, width_m: float = 0.3) -> None:
         self._post = None if x_m is None else (float(x_m), float(width_m))
@@ -192,7 +208,7 @@ class SickLms1xxEmulator:
         elif c == "truncate":
             self.truncate_next()
         elif c == "corrupt":
-            self.corrupt_next()
+            self.corrupt_next(w[1] if len(w) > 1 else "hex")
         elif c == "split":
             self.split = len(w) < 2 or w[1] == "on"
         elif c == "drop":
@@ -236,10 +252,15 @@ class SickLms1xxEmulator:
                                   telegram_counter=self.telegram_counter,
                                   scan_counter=self.scan_counter, time_us=t_us,
                                   scan_hz=self.scan_hz, serial=self.serial, rssi=rssi,
-                                  method=method)
+                                  method=method, scale=self.scale)
             self.last_sent = (self.telegram_counter, r)
             self.history.append(self.last_sent)
         return tel
+
+    def _injected(self, fault: str, t: int) -> None:
+        """``fault`` went on the wire at ``t`` (time.monotonic_ns() just before the bytes)."""
+        self.injected.append((fault, t))
+        self.log(event="injected", fault=fault, t_ns=t)
 
     # ---- server -------------------------------------------------------------------------------
     def _accept(self) -> None:
@@ -322,20 +343,30 @@ class SickLms1xxEmulator:
                 next_scan = max(next_scan + period, now - period)
                 if not (state["subscribed"] and self.measuring) or self.silent:
                     continue
+                faults = []
                 if self._garbage:
                     n, self._garbage = self._garbage, 0
                     junk = bytes(b for b in os.urandom(n * 2) if b not in (2, 3))[:n]
+                    self._injected("garbage", time.monotonic_ns())
                     c.sendall(junk)
                 tel = self.next_telegram()
                 if self._truncate:
                     self._truncate = False
                     tel = tel[:len(tel) // 2]
+                    faults.append("truncate")
                 elif self._corrupt:
-                    self._corrupt = False
+                    how, self._corrupt = self._corrupt, None
                     toks = tel.split(b" ")
-                    toks[len(toks) // 2] = b"Z" + toks[len(toks) // 2][1:]
+                    if how == "angle":         # DIST1 start angle: token 23 of the header
+                        toks[23] = f"{int(toks[23], 16) ^ 0x10000:X}".encode()
+                    else:
+                        toks[len(toks) // 2] = b"Z" + toks[len(toks) // 2][1:]
                     tel = b" ".join(toks)
+                    faults.append("corrupt" if how == "hex" else "corrupt angle")
+                t_tel = time.monotonic_ns()
                 self._send(c, tel)
+                for f in faults:
+                    self._injected(f, t_tel)
                 self.sent_scans += 1
         except OSError:
             pass
