@@ -15,17 +15,20 @@ docs/hardware.md, "Strobe/trigger protocol"): ASCII lines ending in ``\\n``, eac
                                   FAULT <code> <text>*HH   (unsolicited, e.g. lamp open circuit)
 
 The driver keeps the controller configured (rate, armed, strobe) and polls STATUS every
-``status_period_s``; each good STATUS is a sample. A FAULT line, a STATUS with ``fault`` not 0,
-a pulse counter that stops climbing while armed (the controller has stopped firing), lines that
-fail the checksum, unanswered commands and a port that goes away all mark the device FAULT; the
-garbage cases are held for ``fault_hold_s`` so the 10 Hz loop cannot miss them. A silent
-controller goes stale after ``timeout_s``. The port is reopened with back-off.
+``status_period_s`` (25 Hz); each good STATUS is a sample. A FAULT line, a STATUS with ``fault``
+not 0, a pulse that was due but is not in the counter (the controller has stopped firing; see
+:class:`PulseCheck`), lines that fail the checksum, unanswered commands and a port that goes
+away all mark the device FAULT; the garbage cases are held for ``fault_hold_s`` so the 10 Hz
+loop cannot miss them. A silent controller goes stale after ``timeout_s``. The port is reopened
+with back-off.
 
 :func:`next_illumination` is the day/night rule (pure): switch to the strobe when the ambient
 brightness falls below ``night_below`` and back only when it rises above ``day_above``.
 """
 from __future__ import annotations
 
+import collections
+import math
 import queue
 import time
 
@@ -112,6 +115,54 @@ def parse_status(payload: str) -> dict:
 
 
 # ---------------------------------------------------------------------------------------------
+class PulseCheck:
+    """Is the trigger still firing? Decided on every STATUS from its pulse counter, as early as
+    the counter can tell.
+
+    The controller fires pulse k at ``t0 + k / rate`` (t0 unknown, its clock is not ours). A
+    STATUS saying ``pulses=p`` was composed at some time c between the moment the driver sent
+    ``STATUS?`` (s, taken before the write) and the moment the answer was read (r). Pulse p had
+    fired by c <= r, so ``t0 <= r - p / rate``; the smallest such bound over the recent answers,
+    U, is a bound for t0, and pulse p + 1 was due by ``U + (p + 1) / rate`` at the latest. An
+    answer still saying p to a request sent after that (``s > U + (p + 1) / rate + margin_s``)
+    proves a pulse is missing: no tolerance for serial latency is needed (c >= s), only
+    ``margin_s`` for the controller's clock running slow (answers older than ``window_s`` are
+    forgotten, so a 100 ppm crystal drifts 0.2 ms). U tightens as the polls (25 Hz) fall at
+    different points between the pulses (10 Hz). A late pulse looks the same as a stopped
+    trigger until it comes; when the counter moves again the phase is learned afresh.
+    """
+
+    def __init__(self, margin_s: float = 0.005, window_s: float = 2.0):
+        self.margin_s, self.window_s = float(margin_s), float(window_s)
+        self.reset()
+
+    def reset(self) -> None:
+        self._bounds: collections.deque = collections.deque()    # (r, r - p / rate)
+        self._rate: float | None = None
+        self._last_p: int | None = None
+        self.missing_since: float | None = None   # due time of the pulse that did not come
+
+    def update(self, rate_hz: float, pulses: int, sent_s: float | None, read_s: float) -> bool:
+        """One STATUS answer (monotonic seconds). True while a due pulse is missing."""
+        if (rate_hz != self._rate or self._last_p is None or pulses < self._last_p
+                or (self.missing_since is not None and pulses > self._last_p)):
+            self.reset()             # new rate, counter reset, or firing again after a gap
+            self._rate = rate_hz
+        self._last_p = pulses
+        period = 1.0 / rate_hz
+        b = self._bounds
+        b.append((read_s, read_s - pulses * period))
+        while len(b) > 1 and read_s - b[0][0] > self.window_s:
+            b.popleft()
+        due = min(v for _, v in b) + (pulses + 1) * period
+        if sent_s is not None and sent_s > due + self.margin_s:
+            if self.missing_since is None:
+                self.missing_since = due
+            return True
+        return False
+
+
+# ---------------------------------------------------------------------------------------------
 class StrobeSerialTrigger(StrobeTrigger):
     """The trigger/strobe controller on a serial port (pyserial)."""
 
@@ -119,13 +170,13 @@ class StrobeSerialTrigger(StrobeTrigger):
                       "status_period_s": float, "ack_timeout_s": float, "fault_hold_s": float,
                       "backoff_max_s": float, "day_night": bool, "night_below": float,
                       "day_above": float, "probe_s": float}
-    # one STATUS period (0.1 s) + 60 ms late tolerance: a silent controller is stale 60 ms after
+    # one STATUS period (0.04 s) + 60 ms late tolerance: a silent controller is stale 60 ms after
     # its next answer was due, so the gate stops within two 10 Hz cycles (docs/hardware.md)
-    default_timeout_s = 0.16
+    default_timeout_s = 0.1
 
     def __init__(self, name, clock, port: str = "/dev/fieldguard-strobe", baudrate: int = 115200,
                  timeout_s: float = default_timeout_s, rate_hz: float = 10.0,
-                 strobe: bool = False, status_period_s: float = 0.1, ack_timeout_s: float = 0.5,
+                 strobe: bool = False, status_period_s: float = 0.04, ack_timeout_s: float = 0.5,
                  fault_hold_s: float = 0.3, backoff_max_s: float = 2.0,
                  day_night: bool = True, night_below: float = 35.0, day_above: float = 60.0,
                  probe_s: float = 10.0):
@@ -149,15 +200,15 @@ class StrobeSerialTrigger(StrobeTrigger):
         self._pending: dict[str, float] = {}      # command word -> deadline (monotonic)
         self._next_status = 0.0
         self._bad_until = 0.0
-        self._last_pulses: tuple[int, float] | None = None
-        self._stalled_since: float | None = None
+        self.pulse_check = PulseCheck()
+        self._status_sent: collections.deque = collections.deque()   # STATUS? send times
         self.last_status: dict | None = None
         self._fault_text: dict[str, str] = {}
 
     @classmethod
     def from_config(cls, cfg, clock, shared):
         o = cfg.options
-        check_timeout(cfg.name, cfg.timeout_s, o.get("status_period_s", 0.1),
+        check_timeout(cfg.name, cfg.timeout_s, o.get("status_period_s", 0.04),
                       "the status period (status_period_s)")
         if o.get("night_below", 35.0) >= o.get("day_above", 60.0):
             from hal.errors import ConfigError
@@ -166,7 +217,7 @@ class StrobeSerialTrigger(StrobeTrigger):
         return cls(cfg.name, clock, port=o.get("port", "/dev/fieldguard-strobe"),
                    baudrate=o.get("baudrate", 115200), timeout_s=cfg.timeout_s,
                    rate_hz=o.get("rate_hz", 10.0), strobe=o.get("strobe", False),
-                   status_period_s=o.get("status_period_s", 0.1),
+                   status_period_s=o.get("status_period_s", 0.04),
                    ack_timeout_s=o.get("ack_timeout_s", 0.5),
                    fault_hold_s=o.get("fault_hold_s", 0.3),
                    backoff_max_s=o.get("backoff_max_s", 2.0),
@@ -206,18 +257,22 @@ class StrobeSerialTrigger(StrobeTrigger):
         self._ser = None
         self._buf = b""
         self._pending.clear()
-        self._last_pulses = None
+        self._status_sent.clear()
+        self.pulse_check.reset()
         self._lost(self.backoff, "reopens", reason)
 
     def _connect(self) -> None:
         import serial
         try:
-            self._ser = serial.Serial(self.port, self.baudrate, timeout=0.05, write_timeout=0.2)
+            # reads wait at most 10 ms, so the STATUS polls keep to their period
+            self._ser = serial.Serial(self.port, self.baudrate, timeout=0.01, write_timeout=0.2)
         except (serial.SerialException, OSError) as exc:
             self._ser = None
             raise DeviceOperationError(f"cannot open {self.port}: {exc}") from None
         self._ser.reset_input_buffer()
         self._buf = b""
+        self._status_sent.clear()
+        self.pulse_check.reset()
         # (re)configure from scratch: the controller may have been power-cycled
         for c in (f"RATE {self.want_rate_hz:.2f}", "STROBE ON" if self.want_strobe else
                   "STROBE OFF", "ARM"):
@@ -226,6 +281,13 @@ class StrobeSerialTrigger(StrobeTrigger):
 
     def _send(self, payload: str) -> None:
         import serial
+        if payload == "STATUS?":
+            # before the write: the controller cannot answer earlier (PulseCheck relies on it);
+            # requests unanswered for ack_timeout_s are forgotten (their answers were lost)
+            t = time.monotonic()
+            while self._status_sent and t - self._status_sent[0] > self.ack_timeout_s:
+                self._status_sent.popleft()
+            self._status_sent.append(t)
         try:
             self._ser.write(frame_line(payload))
         except (serial.SerialException, OSError) as exc:
@@ -305,13 +367,18 @@ class StrobeSerialTrigger(StrobeTrigger):
                 self._count("bad_lines")
                 self._wire_error(str(exc))
                 return
-            self._on_status(st)
+            # the oldest request still waiting: this answer's or (one was lost) an earlier one,
+            # never a later one, so PulseCheck errs only towards seeing a stall later
+            sent = self._status_sent.popleft() if self._status_sent else None
+            self._on_status(st, sent)
         else:
             self._count("other_lines")
 
-    def _on_status(self, st: dict) -> None:
+    def _on_status(self, st: dict, sent_s: float | None = None) -> None:
         now = time.monotonic()
         self.last_status = st
+        if st["fault"] or not st["armed"] or abs(st["rate_hz"] - self.want_rate_hz) > 0.01:
+            self.pulse_check.reset()     # the pulse phase is learned again once all is well
         if st["fault"]:
             text = self._fault_text.get(str(st["fault"]), "")
             self._fault(f"controller fault {st['fault']}: {text}".rstrip(": "))
@@ -327,15 +394,14 @@ class StrobeSerialTrigger(StrobeTrigger):
             return
         if st["strobe"] != self.want_strobe:
             self._cmds.put("STROBE ON" if self.want_strobe else "STROBE OFF")
-        # is it firing? the pulse counter must climb at the rate
-        if self._last_pulses is not None and st["pulses"] == self._last_pulses[0]:
-            if now - self._last_pulses[1] > 2.5 / self.want_rate_hz:
+        # is it firing? every pulse that was due must be in the counter
+        was_missing = self.pulse_check.missing_since is not None
+        if self.pulse_check.update(st["rate_hz"], st["pulses"], sent_s, now):
+            if not was_missing:
                 self._count("stalls")
-                self._fault(f"trigger stopped firing ({st['pulses']} pulses, none for "
-                            f"{now - self._last_pulses[1]:.2f} s)")
-                return
-        else:
-            self._last_pulses = (st["pulses"], now)
+            self._fault(f"trigger stopped firing (pulse counter stuck at {st['pulses']}, the "
+                        f"next pulse is overdue)")
+            return
         if now < self._bad_until or self._pending:
             return          # keep the fault visible / wait for the acks
         self.backoff.reset()

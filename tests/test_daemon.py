@@ -123,7 +123,7 @@ def test_bad_run_folder_is_a_clear_error(tmp_path, capsys):
 @pytest.mark.parametrize("table, period", [
     ({"rgbd": {"type": "freenect", "timeout_s": 0.06}}, "1 / max_fps"),
     ({"rgbd": {"type": "freenect", "max_fps": 5.0, "timeout_s": 0.13}}, "1 / max_fps"),
-    ({"trigger": {"type": "serial", "timeout_s": 0.1}}, "status_period_s"),
+    ({"trigger": {"type": "serial", "timeout_s": 0.04}}, "status_period_s"),
     ({"stereo": {"type": "aravis", "left": "a", "right": "b", "calibration": "c.json",
                  "rate_hz": 5.0}}, "1 / rate_hz"),
     ({"laser": {"type": "sick-lms1xx", "timeout_s": 0.03}}, "25 Hz"),

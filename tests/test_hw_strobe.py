@@ -1,9 +1,11 @@
 """Strobe/trigger controller at the wire: the driver and the controller emulator on the two ends
 of a socat pty pair, with garbage bytes, half lines, bad checksums, a silent controller, a
 trigger that stops firing, a reported fault and a port that disappears; the daemon's gate in
-STOP within two cycles of a trigger fault and recovering. Plus the day/night rule."""
+STOP within two cycles of each of these and recovering. Plus the pulse check on a simulated
+controller and the day/night rule."""
 from __future__ import annotations
 
+import math
 import os
 import shutil
 import subprocess
@@ -13,8 +15,9 @@ import numpy as np
 import pytest
 
 from drivers.emulators.strobe import StrobeControllerEmulator
-from drivers.strobe_serial import (DAY, NIGHT, StrobeSerialTrigger, checksum, frame_line,
-                                   next_illumination, parse_line, parse_status, scene_brightness)
+from drivers.strobe_serial import (DAY, NIGHT, PulseCheck, StrobeSerialTrigger, checksum,
+                                   frame_line, next_illumination, parse_line, parse_status,
+                                   scene_brightness)
 from hal.clock import MonotonicClock
 from hal.health import Health
 from tests.test_hw_sick import DaemonRig, wait_for
@@ -56,6 +59,38 @@ def test_scene_brightness_undoes_auto_exposure():
     assert dark == pytest.approx(b1 / 4, rel=1e-6)
     assert scene_brightness(img, 1000, gain_db=20) == pytest.approx(b1 / 10, rel=1e-6)
     assert 20 < scene_brightness(img, 1000, ref_exposure_us=1000) < 235
+
+
+@pytest.mark.parametrize("delay_s, seen_within_s", [(0.005, 0.065), (0.15, 0.2)])
+def test_pulse_check_on_a_simulated_controller(delay_s, seen_within_s):
+    """PulseCheck against a controller that fires at exactly 10 Hz from an unknown phase and
+    answers each poll (25 Hz, jittered by up to 10 ms) after a random delay of up to
+    ``delay_s`` (request to answer to read): no false alarm in 20 s, whatever the delay; a
+    trigger stopped at 12.34 s is seen at the first poll sent after the missing pulse was due
+    (plus the 5 ms margin and what the answers' delays leave of U's slack: within 65 ms of the
+    due time with a 5 ms delay, 200 ms with 150 ms), and once it fires again (at a new phase)
+    the check is quiet again."""
+    rng = np.random.default_rng(7)
+    rate, phase = 10.0, 0.0377
+    stop_at, resume_at = 12.34, 13.5
+    pc, s, seen = PulseCheck(), 0.0, []
+
+    def count(c):        # pulses fired by time c (none between stop_at and resume_at)
+        if c < stop_at:
+            return math.floor((c - phase) * rate)
+        stopped = math.floor((stop_at - phase) * rate)
+        return stopped + max(0, math.floor((c - resume_at) * rate))
+
+    while s < 20.0:
+        s += 0.04 + rng.uniform(0, 0.01)                  # the driver sends STATUS?
+        c = s + rng.uniform(0, delay_s / 3)               # the controller composes the answer
+        r = c + rng.uniform(0, delay_s * 2 / 3)           # the driver reads it
+        if pc.update(rate, count(c), s, r):
+            seen.append(s)
+    due = phase + (math.floor((stop_at - phase) * rate) + 1) / rate
+    assert seen, "the stop was not seen"
+    assert due < seen[0] <= due + seen_within_s, (seen[0] - due)
+    assert all(x < resume_at + 0.2 for x in seen)         # quiet once it fires again
 
 
 # ---------------------------------------------------------------------------------------------
@@ -161,44 +196,110 @@ def test_port_disappears_then_comes_back(wire):
         os.close(fd)
 
 
-def test_daemon_stops_when_the_trigger_stops_firing(tmp_path):
-    from drivers.emulators.sick_lms1xx import SickLms1xxEmulator, sim_scans
-    pair = PtyPair(tmp_path)
-    fd = os.open(pair.b, os.O_RDWR | os.O_NOCTTY)
-    emu = StrobeControllerEmulator(fd).start()
-    geo, scans = sim_scans("stubble-empty", 2)
-    laser = SickLms1xxEmulator(geo, scans).start()
-    rig = None
+class TriggerRig:
+    """The daemon with the laser emulator (so the gate can be CLEAR) and the trigger controller
+    emulator on a socat pty pair."""
+
+    def __init__(self, tmp_path):
+        from drivers.emulators.sick_lms1xx import SickLms1xxEmulator, sim_scans
+        self.pair = PtyPair(tmp_path)
+        self.fd = os.open(self.pair.b, os.O_RDWR | os.O_NOCTTY)
+        self.emu = StrobeControllerEmulator(self.fd).start()
+        geo, scans = sim_scans("stubble-empty", 2)
+        self.laser = SickLms1xxEmulator(geo, scans).start()
+        self.rig = None
+        self.rig = DaemonRig({"laser": {"type": "sick-lms1xx", "host": "127.0.0.1",
+                                        "port": self.laser.port},
+                              "trigger": {"type": "serial", "port": self.pair.a,
+                                          "backoff_max_s": 0.4}})
+        self.dev = self.rig.daemon.devices["trigger"]
+
+    def stop_within(self, t_ns: int, text: str, most: int = 2) -> None:
+        """STOP within ``most`` cycles of ``t_ns``, the trigger's fault saying ``text``."""
+        rig = self.rig
+        assert wait_for(lambda: rig.cycles_until(t_ns, "STOP") is not None, 2.0)
+        n = rig.cycles_until(t_ns, "STOP")
+        after = [c[:3] for c in rig.cycles if c[0] >= t_ns]
+        assert n <= most, (text, n, after[:5])
+        assert any(f.startswith("trigger:") for f in after[n - 1][2]), after[n - 1]
+        assert wait_for(lambda: any(text in f for c in rig.cycles if c[0] >= t_ns
+                                    for f in c[2]), 1.0), (text, after[:5])
+
+    def clear(self) -> None:
+        assert wait_for(lambda: self.rig.state == "CLEAR", 4.0), self.rig.cycles[-1][:3]
+
+    def close(self):
+        if self.rig:
+            self.rig.close()
+        self.laser.stop()
+        self.emu.stop()
+        os.close(self.fd)
+        self.pair.kill()
+
+
+def test_daemon_stops_when_the_controller_faults_stalls_or_hangs(tmp_path):
+    """A fault the controller reports, a trigger that stops firing while the controller still
+    answers, a controller that stops answering: STOP within two cycles, then CLEAR."""
+    t = TriggerRig(tmp_path)
+    rig, emu = t.rig, t.emu
     try:
-        rig = DaemonRig({"laser": {"type": "sick-lms1xx", "host": "127.0.0.1",
-                                   "port": laser.port},
-                         "trigger": {"type": "serial", "port": pair.a}})
-        assert wait_for(lambda: rig.state == "CLEAR", 5.0), rig.cycles[-3:]
+        t.clear()
         t0 = rig.now()
         emu.command("fault 3 trigger output short circuit")
-        assert wait_for(lambda: rig.cycles_until(t0, "STOP") is not None, 2.0)
-        assert rig.cycles_until(t0, "STOP") <= 2
-        assert "short circuit" in " ".join(rig.cycles[-1][2])
+        t.stop_within(t0, "short circuit")
         emu.command("fault 0")
-        assert wait_for(lambda: rig.state == "CLEAR", 4.0)
+        t.clear()
+        # the trigger stops firing: the counter is checked on every STATUS (25 Hz) against the
+        # pulses that were due (PulseCheck): STOP within two cycles of the first missing pulse
+        assert t.dev.counters.get("stalls", 0) == 0         # no false alarm so far
         t1 = rig.now()
         emu.command("stall")
-        assert wait_for(lambda: rig.cycles_until(t1, "STOP") is not None, 2.0)
-        # a stall is only visible after 2.5 pulse periods (0.25 s) plus one status poll
-        assert rig.cycles_until(t1, "STOP") <= 5
+        t.stop_within(emu.stall_due_ns, "stopped firing")
+        assert rig.cycles_until(t1, "STOP") <= 3             # the pulse is due <= 0.1 s later
+        assert t.dev.counters["stalls"] == 1
         emu.command("fire")
-        assert wait_for(lambda: rig.state == "CLEAR", 4.0)
+        t.clear()
         # the controller hangs (stops answering): stale 60 ms after its STATUS answer was due,
         # STOP within two cycles of that
-        rig.check_silence("trigger", 0.1, lambda: emu.command("silent"),
+        rig.check_silence("trigger", t.dev.status_period_s, lambda: emu.command("silent"),
                           lambda: emu.command("resume"), "trigger: stale")
+        assert t.dev.counters["stalls"] == 1                 # and no false alarm after it
     finally:
-        if rig:
-            rig.close()
-        laser.stop()
-        emu.stop()
-        os.close(fd)
-        pair.kill()
+        t.close()
+
+
+def test_daemon_stops_on_line_noise_and_a_vanished_port(tmp_path):
+    """Garbage bytes, half a line, a bad checksum (each spoils the line it lands in: FAULT,
+    held fault_hold_s) and the serial port disappearing: STOP within two cycles of the bytes /
+    the unplugging, then CLEAR; the port is reopened when it is back."""
+    t = TriggerRig(tmp_path)
+    rig, emu = t.rig, t.emu
+    emu2 = fd2 = None
+    try:
+        for command, text in [("garbage 40", "bad data on the serial line"),
+                              ("half", "bad data on the serial line"),
+                              ("badsum", "bad checksum")]:
+            t.clear()
+            t0 = rig.now()
+            emu.command(command)
+            t_wire = next(x for f, x in emu.injected if f == command.split()[0] and x >= t0)
+            t.stop_within(t_wire, text)
+        t.clear()
+        t0 = rig.now()
+        t.pair.kill()                                        # USB cable out
+        t.stop_within(t0, "")
+        assert wait_for(lambda: t.dev.counters.get("reopens", 0) >= 1, 2.0)
+        t.pair.start()                                       # back in: a fresh pty pair
+        fd2 = os.open(t.pair.b, os.O_RDWR | os.O_NOCTTY)
+        emu2 = StrobeControllerEmulator(fd2).start()
+        t.clear()
+        assert emu2.armed                                    # re-configured from scratch
+    finally:
+        t.close()
+        if emu2:
+            emu2.stop()
+        if fd2 is not None:
+            os.close(fd2)
 
 
 # ---------------------------------------------------------------------------------------------

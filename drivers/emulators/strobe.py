@@ -13,11 +13,16 @@ and takes fault-injection commands on stdin:
     stall | fire     the trigger stops / restarts firing (status still answered)
     fault CODE TEXT  report a fault (e.g. ``fault 2 strobe lamp open circuit``); ``fault 0`` clears
     quit
+
+For tests, ``injected`` records (fault, time.monotonic_ns()) as each injected fault goes on the
+wire, and ``stall_due_ns`` the moment the first pulse a ``stall`` suppressed was due.
 """
 from __future__ import annotations
 
 import argparse
+import collections
 import json
+import math
 import os
 import sys
 import threading
@@ -40,6 +45,8 @@ class StrobeControllerEmulator:
         self.silent = False
         self.stalled = False
         self.fault_code = 0
+        self.injected: collections.deque = collections.deque(maxlen=64)   # (fault, monotonic ns)
+        self.stall_due_ns: int | None = None
         self._pulses = 0.0
         self._t = time.monotonic()
         self._stop = threading.Event()
@@ -144,18 +151,26 @@ class StrobeControllerEmulator:
         c = w[0]
         if c == "garbage":
             n = int(w[1]) if len(w) > 1 else 32
-            self.write(bytes(b for b in os.urandom(2 * n) if b != 0x0A)[:n])
+            junk = bytes(b for b in os.urandom(2 * n) if b != 0x0A)[:n]
+            self.injected.append((c, time.monotonic_ns()))
+            self.write(junk)
         elif c == "half":
             full = frame_line(self.status_payload())
+            self.injected.append((c, time.monotonic_ns()))
             self.write(full[:len(full) // 2])
         elif c == "badsum":
             p = self.status_payload()
+            self.injected.append((c, time.monotonic_ns()))
             self.write(f"{p}*{(int(checksum(p), 16) ^ 0x5A):02X}\n".encode())
         elif c in ("silent", "resume"):
             self.silent = c == "silent"
         elif c in ("stall", "fire"):
             with self._lock:
                 self._tick()
+                if c == "stall" and self.armed and not self.stalled:
+                    # the next pulse would have fired when the counter reached the next integer
+                    wait = (math.floor(self._pulses) + 1 - self._pulses) / self.rate_hz
+                    self.stall_due_ns = int((self._t + wait) * 1e9)
                 self.stalled = c == "stall"
         elif c == "fault":
             self.fault_code = int(w[1]) if len(w) > 1 else 1
