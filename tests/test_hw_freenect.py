@@ -239,6 +239,31 @@ def test_daemon_runs_the_rgbd_pipeline_from_the_kinect(greenhouse_dump, stub, tm
         rig.close()
 
 
+def test_daemon_gate_clears_again_after_the_kinect_recovers(greenhouse_dump, stub, tmp_path):
+    """The same silence and end of dump with no pipeline, so only the Kinect's health decides
+    (the greenhouse's bushes keep the rgbd pipeline's gate in STOP above): each fault puts the
+    gate in STOP within two cycles, and once frames come again the gate is CLEAR."""
+    gap = {**greenhouse_dump, "dump": str(with_gap(greenhouse_dump["dump"], tmp_path / "gap", 8,
+                                                   0.6, keep=16))}
+    rig = DaemonRig({"rgbd": _rgbd_options(gap, stub)}, pipelines=())
+    period = 1 / 15.0
+    try:
+        t = rig.now()
+        for text in ("stale", "process_events returned -1"):
+            assert wait_for(lambda: rig.silence_stop_cycles("rgbd", period, t, text)
+                            is not None, 6.0), (text, rig.cycles[-1][:3])
+            assert rig.silence_stop_cycles("rgbd", period, t, text) <= 2
+            bad = next(c for c in list(rig.cycles) if c[0] >= t
+                       and any(f.startswith("rgbd:") and text in f for f in c[2]))
+            assert bad[1] == "STOP"
+            assert wait_for(lambda: rig.cycles_until(bad[0], "CLEAR") is not None, 6.0), \
+                (text, rig.cycles[-1][:3])
+            t = next(c[0] for c in list(rig.cycles) if c[0] >= bad[0] and c[1] == "CLEAR")
+        assert rig.daemon.devices["rgbd"].counters["restarts"] >= 1
+    finally:
+        rig.close()
+
+
 def test_fieldguard_run_with_a_hardware_config(greenhouse_dump, stub, tmp_path):
     """`fieldguard run --config hw.toml` with the freenect device and the rgbd pipeline."""
     opts = _rgbd_options(greenhouse_dump, stub)
