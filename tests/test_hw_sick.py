@@ -233,13 +233,16 @@ class DaemonRig:
     """appliance.daemon.Daemon from a hardware config, its loop in a thread at 10 Hz, every
     cycle's (clock ns, gate state, faults) recorded."""
 
-    def __init__(self, devices: dict, pipelines=("laser",), hold_off_s=0.3):
+    def __init__(self, devices: dict, pipelines=("laser",), hold_off_s=0.3,
+                 status_socket: str | None = None):
         from appliance.config import parse_config
         from appliance.daemon import Daemon
         cfg = parse_config({"gate": {"hold_off_s": hold_off_s},
                             "perception": {"pipelines": list(pipelines)},
                             "devices": {**devices, "link": {"type": "log"}}}, "test.toml")
-        self.daemon = Daemon(cfg, mode="hardware", serve_status=False)
+        # status_socket: serve the status socket there (for `fieldguard status/selftest`)
+        self.daemon = Daemon(cfg, mode="hardware", serve_status=status_socket is not None,
+                             status_socket=status_socket)
         self.daemon.start()
         # (clock ns, gate state, faults, {device: stamp of its newest sample})
         self.cycles: list[tuple[int, str, list, dict]] = []

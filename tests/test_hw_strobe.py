@@ -302,6 +302,73 @@ def test_daemon_stops_on_line_noise_and_a_vanished_port(tmp_path):
             os.close(fd2)
 
 
+def test_selftest_command_reports_the_laser_and_the_trigger(tmp_path):
+    """`fieldguard selftest` (the command, as a technician runs it) with the SICK laser and the
+    trigger controller on their emulators: asking the running daemon over its status socket
+    (every device PASS; a controller that stops answering FAIL with the fix, exit 1), then
+    with no daemon, `--config` opening the devices itself."""
+    import json
+    from pathlib import Path
+
+    from drivers.emulators.sick_lms1xx import SickLms1xxEmulator, sim_scans
+    root = Path(__file__).resolve().parents[1]
+    exe = root / ".venv/bin/fieldguard"
+    exe = str(exe) if exe.exists() else "fieldguard"
+    pair = PtyPair(tmp_path)
+    fd = os.open(pair.b, os.O_RDWR | os.O_NOCTTY)
+    emu = StrobeControllerEmulator(fd).start()
+    geo, scans = sim_scans("stubble-empty", 2)
+    laser = SickLms1xxEmulator(geo, scans).start()
+    # generous deadlines: this test is about what selftest reports (the 0.1 s defaults are
+    # tested above); a CLI process starting on a loaded machine can hold the emulators up
+    devices = {"laser": {"type": "sick-lms1xx", "host": "127.0.0.1", "port": laser.port,
+                         "timeout_s": 0.3},
+               "trigger": {"type": "serial", "port": pair.a, "timeout_s": 0.3}}
+    sock = str(tmp_path / "fg.sock")
+    rig = None
+
+    def selftest(*args):
+        return subprocess.run([exe, "selftest", *args], capture_output=True, text=True,
+                              timeout=60, cwd=str(tmp_path))
+    try:
+        rig = DaemonRig(devices, status_socket=sock)
+        assert wait_for(lambda: rig.state == "CLEAR", 5.0), rig.cycles[-3:]
+        r = selftest("--socket", sock)
+        assert r.returncode == 0, r.stdout + r.stderr[-2000:]
+        assert "asked the running daemon" in r.stdout
+        assert (f"PASS  laser      laser/sick-lms1xx: streaming from 127.0.0.1:{laser.port} "
+                f"(LMS1xx_FG_EMU V1.00-fieldguard, 25 Hz") in r.stdout, r.stdout
+        assert (f"PASS  trigger    trigger/serial: {pair.a}: firing at 10 Hz, strobe off"
+                in r.stdout), r.stdout
+        assert "all devices answer" in r.stdout
+        emu.command("silent")                            # the controller hangs
+        assert wait_for(lambda: rig.state == "STOP", 2.0)
+        r = selftest("--socket", sock)
+        assert r.returncode == 1, r.stdout
+        assert "PASS  laser" in r.stdout and "FAIL  trigger" in r.stdout, r.stdout
+        assert "fix: check the trigger controller's serial cable" in r.stdout
+        emu.command("resume")
+        rig.close()
+        rig = None
+        # no daemon running: --config opens the devices of the file itself
+        lines = []
+        for name, opts in {**devices, "link": {"type": "log"}}.items():
+            lines += [f"[devices.{name}]"] + [f"{k} = {json.dumps(v)}" for k, v in opts.items()]
+        lines += ["[status]", f'socket = "{tmp_path}/unused.sock"']
+        (tmp_path / "hw.toml").write_text("\n".join(lines) + "\n")
+        r = selftest("--config", str(tmp_path / "hw.toml"), "--seconds", "1.0")
+        assert r.returncode == 0, r.stdout + r.stderr[-2000:]
+        assert "opened the devices of" in r.stdout
+        assert "PASS  laser" in r.stdout and "PASS  trigger" in r.stdout, r.stdout
+    finally:
+        if rig:
+            rig.close()
+        laser.stop()
+        emu.stop()
+        os.close(fd)
+        pair.kill()
+
+
 # ---------------------------------------------------------------------------------------------
 # day/night switching in the daemon: a stereo camera lit by the emulated controller's strobe
 from hal.devices import StereoCamera                                    # noqa: E402
