@@ -22,10 +22,17 @@ SCENES: dict[str, str] = {
     "stubble-coverage": "the stubble field by day covered lane by lane for long closed-loop runs: "
                         "14 lanes of 250 m, 6 m apart, headland U-turns; the papers' obstacle "
                         "kinds on some lanes and midway between lanes, the rest of the lanes clear",
+    "stubble-lookalike": "the stubble-day field and obstacle course with the obstacles that look "
+                         "like the field: a person in khaki on the path, the stubble-coloured "
+                         "drum and a stubble-textured crate (the learned cue's hard cases)",
 }
 
 STUBBLE_CLASSES = ("person", "person-crouching", "vehicle", "drum", "tank", "pole", "barrel",
                    "crate", "look-alike-drum")
+# stubble-lookalike: these replace the hi-vis person and the orange crate of the course
+LOOKALIKE_CLASSES = ("khaki-person", "look-alike-crate")
+_KHAKI = (0.40, 0.56, 0.64)          # BGR: a khaki shirt, close to the straw's hue
+_KHAKI_TROUSERS = (0.31, 0.46, 0.55)
 GREENHOUSE_CLASSES = ("crate", "bucket", "person", "look-alike-crate", "box")
 
 # colours are BGR in [0, 1]
@@ -175,6 +182,18 @@ def _greenhouse_obstacles(rng: np.random.Generator) -> list[Obstacle]:
     ]
 
 
+def _lookalike(o: Obstacle) -> Obstacle:
+    """The course's hi-vis person in khaki and its orange crate stubble-textured, in the same
+    places (the same draws of the field's RNG); every other obstacle as it is."""
+    from dataclasses import replace
+    if o.cls == "person":
+        return replace(o, cls="khaki-person", colour=_KHAKI, colour2=_KHAKI_TROUSERS)
+    if o.cls == "crate":
+        return replace(o, cls="look-alike-crate", colour=_STRAW, colour2=_STRAW,
+                       texture="stubble")
+    return o
+
+
 def build_scene(name: str, seed: int = 0) -> Scene:
     if name not in SCENES:
         raise ValueError(f"unknown scene {name!r}; known scenes: {', '.join(sorted(SCENES))}")
@@ -199,6 +218,8 @@ def build_scene(name: str, seed: int = 0) -> Scene:
         obstacles = _stubble_obstacles(rng, length)
     if name == "stubble-empty":
         obstacles = []
+    if name == "stubble-lookalike":
+        obstacles = [_lookalike(o) for o in obstacles]
     world = World("stubble", seed, obstacles, waves)
     illum = "night-strobe" if name == "stubble-night" else "day"
     return Scene(name, seed, world, illum, path, cruise_mps=2.5, slow_mps=1.0,
