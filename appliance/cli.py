@@ -142,6 +142,10 @@ def format_status(doc: dict) -> str:
         req = "required" if h.get("required") else "optional"
         lines.append(f"  {n:10s} {h.get('kind', ''):8s} {h.get('state'):9s} age {age:>8s} "
                      f"{req}  {h.get('reason', '')}")
+    for n, notes in doc.get("pipeline_notes", {}).items():
+        flat = notes if "cue" in notes else {f"{k}.{kk}": vv for k, v in notes.items()
+                                              for kk, vv in v.items()}
+        lines.append(f"pipeline {n}: " + ", ".join(f"{k}={v}" for k, v in flat.items()))
     o = doc.get("obstacles")
     if o:
         lines.append(f"picture {o['occupied_cells']} occupied cells, stop zone {o['stop_zone_m']} m,"
@@ -194,7 +198,8 @@ def cmd_config_check(a) -> int:
 # ---------------------------------------------------------------------------------------------
 # Commands that live in their own modules: each module has ``register(subparsers)`` that adds
 # its sub-parser(s) with ``set_defaults(func=...)``. Add a line here to plug a command in.
-COMMAND_MODULES: list[str] = ["appliance.cli_ops", "appliance.cli_rgbd", "appliance.cli_novelty"]
+COMMAND_MODULES: list[str] = ["appliance.cli_ops", "appliance.cli_rgbd", "appliance.cli_novelty",
+                              "appliance.cli_cue"]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,0 +1,150 @@
+"""Per-cell features of the learned cue (issue #8): shape and texture, not only colour.
+
+Both papers decide from colour statistics (the stereo paper's Lab cell descriptor, the
+greenhouse paper's Mahalanobis colour classes); an obstacle coloured like the field passes
+both. The learned cue scores each image cell from what colour statistics leave out:
+
+- colour, for context: Lab of the cell's mean colour and the B, G, R standard deviations (6);
+- gradient energy: mean |d/dx|, mean |d/dy|, mean gradient magnitude, mean |Laplacian| (4);
+- edge orientation: a 6-bin histogram of unsigned gradient direction, weighted by magnitude,
+  normalised (6) -- ground seen at a grazing angle is foreshortened (horizontal structure), a
+  standing surface is not;
+- micro-texture: rotation-invariant uniform LBP (8 neighbours, 10 codes) histogram (10) --
+  leaves and stubble against the smooth faces of crates, drums and clothing;
+- layout inside the cell: the grey means of its 2x2 quarters minus the cell mean (4);
+- position: cell centre u, v in [0, 1] (2);
+- context: the cell's colour, gradient, orientation and LBP features minus their median over
+  its image row of cells (at a given row most cells are the ground at one distance) (23);
+- neighbourhood: the 3x3 box mean of the colour and gradient features (10).
+
+65 numbers per cell, float32. ``FEATURE_SET`` names this exact definition; a model file records
+the set it was trained on and the loader refuses any other (appliance.cue_model). Pure code:
+arrays in, arrays out.
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from .rgbd_texture import lbp_codes
+
+FEATURE_SET = "fieldguard-cell-v1"
+
+_BASE_NAMES = (["L_mean", "a_mean", "b_mean", "B_std", "G_std", "R_std",
+                "gx", "gy", "grad", "laplace"]
+               + [f"orient_{i}" for i in range(6)]
+               + [f"lbp_riu2_{i}" for i in range(10)]
+               + [f"quarter_{i}" for i in range(4)]
+               + ["u", "v"])
+# indices into the base features: those given row context and neighbourhood means
+_ROW_CONTEXT = tuple(range(0, 3)) + tuple(range(6, 26))          # 3 + 4 + 6 + 10 = 23
+_NEIGHBOURHOOD = tuple(range(0, 10))                              # colour + gradient: 10
+FEATURE_NAMES = tuple(_BASE_NAMES
+                      + [f"row_ctx_{_BASE_NAMES[i]}" for i in _ROW_CONTEXT]
+                      + [f"nbhd_{_BASE_NAMES[i]}" for i in _NEIGHBOURHOOD])
+N_FEATURES = len(FEATURE_NAMES)
+ORIENT_BINS = 6
+
+
+def _riu2_table() -> np.ndarray:
+    """LBP code (eq. 6 bit order, clockwise) -> rotation-invariant uniform code 0..9: the number
+    of set bits for a uniform pattern (at most 2 transitions round the circle), 9 otherwise."""
+    t = np.zeros(256, np.int64)
+    for c in range(256):
+        bits = [(c >> i) & 1 for i in range(8)]
+        trans = sum(bits[i] != bits[(i + 1) % 8] for i in range(8))
+        t[c] = sum(bits) if trans <= 2 else 9
+    return t
+
+
+RIU2 = _riu2_table()
+_RIU2_U8 = RIU2.astype(np.uint8)
+_MOD6 = (np.arange(256) % ORIENT_BINS).astype(np.uint8)
+
+_INDEX_CACHE: dict[tuple[int, int, int, int], np.ndarray] = {}
+
+
+def _cell_index(rows: int, cols: int, cell: int, bins: int = 1) -> np.ndarray:
+    """Per pixel (flattened): its cell's number times ``bins`` (int64, cached)."""
+    key = (rows, cols, cell, bins)
+    idx = _INDEX_CACHE.get(key)
+    if idx is None:
+        r = np.arange(rows * cell) // cell
+        c = np.arange(cols * cell) // cell
+        idx = ((r[:, None] * cols + c[None, :]) * bins).astype(np.int64).ravel()
+        _INDEX_CACHE[key] = idx
+    return idx
+
+
+def grid_shape(image_shape: tuple[int, ...], cell_px: int) -> tuple[int, int]:
+    """(rows, cols) of whole cells; a partial cell at the right or bottom edge is left out."""
+    return int(image_shape[0]) // cell_px, int(image_shape[1]) // cell_px
+
+
+def cell_features(bgr: np.ndarray, cell_px: int) -> np.ndarray:
+    """(rows, cols, N_FEATURES) float32 features of the whole ``cell_px`` cells of a BGR uint8
+    image (any size; a grey image is taken as BGR). Raises ValueError on an image smaller than
+    one cell or a cell under 4 px."""
+    img = np.asarray(bgr)
+    if img.ndim == 2:
+        img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+    if img.ndim != 3 or img.shape[2] != 3:
+        raise ValueError(f"cue features need a BGR or grey image, got shape {img.shape}")
+    if img.dtype != np.uint8:
+        raise ValueError(f"cue features need an 8-bit image, got {img.dtype}")
+    if cell_px < 4:
+        raise ValueError(f"cell_px must be >= 4, got {cell_px}")
+    rows, cols = grid_shape(img.shape, cell_px)
+    if rows < 1 or cols < 1:
+        raise ValueError(f"image {img.shape[1]}x{img.shape[0]} is smaller than one "
+                         f"{cell_px}-px cell")
+    c = cell_px
+    img = np.ascontiguousarray(img[:rows * c, :cols * c])
+    area = (cols, rows)
+
+    def mean(x):                          # exact box mean per cell (integer factor)
+        return cv2.resize(x, area, interpolation=cv2.INTER_AREA)
+
+    # colour: Lab of the cell's mean colour (converting the cell means, not every pixel: the
+    # per-pixel Lab conversion alone would cost more than all the rest), BGR spread
+    bgr = img.astype(np.float32)
+    bgr_m = mean(bgr)
+    spread = np.sqrt(np.maximum(mean(cv2.multiply(bgr, bgr)) - bgr_m * bgr_m, 0.0))
+    lab_m = cv2.cvtColor(np.ascontiguousarray(bgr_m * np.float32(1 / 255.0)),
+                         cv2.COLOR_BGR2Lab)
+    lab_m *= np.array([0.01, 1 / 128.0, 1 / 128.0], np.float32)       # ~[0, 1], [-1, 1]
+    lab_s = spread * np.float32(1 / 255.0)
+    g8 = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    grey = g8.astype(np.float32) * np.float32(1 / 255.0)
+    gx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3)
+    mag, ang = cv2.cartToPolar(gx, gy, angleInDegrees=True)
+    lap = cv2.Laplacian(grey, cv2.CV_32F, ksize=1)
+    grad = np.stack([mean(cv2.absdiff(gx, 0.0)), mean(cv2.absdiff(gy, 0.0)), mean(mag),
+                     mean(cv2.absdiff(lap, 0.0))], axis=-1)
+    n = rows * cols
+    # unsigned orientation in [0, 180) degrees -> 6 bins, weighted by magnitude, one bincount
+    # (floor(ang / 30) as |ang / 30 - 0.5| rounded, 0..12, then mod 6 by a table: an order
+    # of magnitude cheaper than numpy's integer remainder or masked assignment)
+    obin = cv2.LUT(cv2.convertScaleAbs(ang, alpha=ORIENT_BINS / 180.0, beta=-0.5), _MOD6)
+    orient = np.bincount(_cell_index(rows, cols, c, ORIENT_BINS) + obin.ravel(),
+                         weights=mag.ravel(), minlength=n * ORIENT_BINS)
+    orient = orient.reshape(rows, cols, ORIENT_BINS)
+    orient /= orient.sum(axis=-1, keepdims=True) + 1e-6
+    lbp = cv2.LUT(lbp_codes(g8), _RIU2_U8)
+    hist = np.bincount(_cell_index(rows, cols, c, 10) + lbp.ravel(), minlength=n * 10)
+    hist = hist.reshape(rows, cols, 10) * (1.0 / (c * c))
+    quarters = cv2.resize(grey, (2 * cols, 2 * rows), interpolation=cv2.INTER_AREA)
+    gm = mean(grey)
+    q = quarters.reshape(rows, 2, cols, 2).transpose(0, 2, 1, 3).reshape(rows, cols, 4)
+    q = q - gm[:, :, None]
+    v, u = np.mgrid[0:rows, 0:cols].astype(np.float32)
+    pos = np.stack([(u + 0.5) / cols, (v + 0.5) / rows], axis=-1)
+    base = np.concatenate([lab_m, lab_s, grad, orient, hist, q, pos], axis=-1).astype(np.float32)
+    ctx_src = base[:, :, _ROW_CONTEXT]
+    row_ctx = ctx_src - np.median(ctx_src, axis=1, keepdims=True)
+    nb = cv2.blur(np.ascontiguousarray(base[:, :, _NEIGHBOURHOOD]), (3, 3),
+                  borderType=cv2.BORDER_REPLICATE)
+    if nb.ndim == 2:                       # OpenCV drops a unit axis
+        nb = nb.reshape(rows, cols, -1)
+    return np.ascontiguousarray(np.concatenate([base, row_ctx, nb], axis=-1), np.float32)
