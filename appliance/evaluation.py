@@ -182,6 +182,8 @@ class Aggregate:
         self.per_class: dict[str, _ClassTally] = {}
         self.ms: list[float] = []
         self.missed: list[tuple[int, str]] = []     # (frame index, obstacle id) not detected
+        self.fp_frame_indices: list[int] = []
+        self.fp_frames_clear = 0      # FP frames with no obstacle in the zone: false stops
 
     def add(self, frame_index: int, score: FrameScore | None, ms: float | None = None) -> None:
         if ms is not None:
@@ -191,6 +193,9 @@ class Aggregate:
         self.frames += 1
         self.fp_cells += score.fp_cells
         self.false_positive_frames += int(score.false_positive)
+        if score.false_positive:
+            self.fp_frame_indices.append(int(frame_index))
+            self.fp_frames_clear += int(not score.scored_obstacles)
         for ob in score.scored_obstacles:
             for t in (self.all, self.per_class.setdefault(ob.cls, _ClassTally())):
                 t.obstacle_frames += 1
@@ -208,6 +213,10 @@ class Aggregate:
             "frames": self.frames,
             **self.all.result(),
             "false_positive_frames": self.false_positive_frames,
+            "false_positive_frame_indices": list(self.fp_frame_indices),
+            # of those, frames with no obstacle in the zone at all (where a false positive
+            # is a false stop; elsewhere it sits beside a real obstacle)
+            "false_positive_frames_clear": self.fp_frames_clear,
             "fp_cells": self.fp_cells,
             "fp_cells_per_frame": _ratio(self.fp_cells, self.frames),
             "per_class": {c: t.result() for c, t in sorted(self.per_class.items())},

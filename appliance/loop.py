@@ -288,6 +288,7 @@ class ApplianceLoop:
                            for e in list(self.gate.history)[-10:]],
             "links": {l.name: l.peers() for l in self.links},
             "pipelines": [p.name for p in self.pipelines],
+            "pipeline_notes": {p.name: n for p in self.pipelines if (n := p.notes())},
         }
         if last is not None:
             v = last.verdict

@@ -52,5 +52,10 @@ class Pipeline(ABC):
     def process(self, inputs: SensorInputs) -> Detections:
         """Detect obstacles in one cycle's inputs. Raises on bad input (the loop catches it)."""
 
+    def notes(self) -> dict:
+        """What the status page should say about this pipeline beyond its name (e.g. an
+        optional cue running without its model); {} when there is nothing to say."""
+        return {}
+
     def close(self) -> None:
         """Stop background work (model updates)."""

@@ -30,6 +30,9 @@ class FusedPipeline(Pipeline):
             return Detections(debug=debug)
         return Detections(points_xy=np.concatenate(pts).astype(np.float32), debug=debug)
 
+    def notes(self) -> dict:
+        return {p.name: n for p in self.parts if (n := p.notes())}
+
     def close(self):
         for p in self.parts:
             p.close()

@@ -36,6 +36,7 @@ import numpy as np
 from appliance.config import _f
 
 from .base import Detections, Pipeline, SensorInputs
+from .cue import LearnedCue
 from .rgbd_classes import RgbdClassModel
 from .rgbd_colour import COLOUR_SPACES, ColourClassifier, colour_features
 from .rgbd_decision import (NOT_CLASSIFIED, Rule, decide, not_traversable, obstacle_groups,
@@ -115,6 +116,24 @@ class RgbdPipelineConfig:
                                                     "traversable ones (the greenhouse cover: "
                                                     "beyond the sensor's range)")
     use_vehicle_pitch: bool = _f(False, doc="add the vehicle's pitch to the mount pitch")
+    cue: str = _f("off", choices=("off", "optional", "required"),
+                  doc="beyond the paper: the learned cue (ONNX, docs/learned-cue.md) stands "
+                      "beside colour and texture in the decision. required: a missing or "
+                      "broken model is a fault (STOP); optional: the box runs without it and "
+                      "says so in status")
+    cue_model: str = _f("", doc="cue model file from `fieldguard train-cue`; empty = the "
+                                "shipped greenhouse model (appliance/models/cue-greenhouse.onnx)")
+    cue_threshold: float = _f(0.0, lo=0.0, hi=1.0,
+                              doc="P(obstacle-like) above which a cell counts; 0 = the "
+                                  "threshold stored in the model")
+    cue_threads: int = _f(1, lo=1, hi=8, doc="cue: onnxruntime intra-op threads")
+    cue_open_cells: int = _f(2, lo=0, hi=8, doc="cue: a cell counts only inside a square block "
+                                                "of this many obstacle-like cells (0/1 = any)")
+    cue_texture_veto: bool = _f(False, doc="cue: a pixel whose texture window is of a "
+                                           "traversable class is not turned into an obstacle "
+                                           "by the cue (texture and cue must not disagree)")
+    cue_erode_px: int = _f(4, lo=0, hi=32, doc="cue: its pixel mask shrunk by this much (the "
+                                               "cells on an outline are partly background)")
 
 
 # The paper's decision (section 3.5) on our slope step: give these to RgbdPipelineConfig (or put
@@ -150,6 +169,8 @@ class RgbdResult:
     points_xy: np.ndarray
     raised_obstacles: np.ndarray | None = None
     groups_raised: int = 0
+    learned_obstacles: np.ndarray | None = None
+    groups_learned: int = 0
 
 
 class RgbdPipeline(Pipeline):
@@ -158,9 +179,11 @@ class RgbdPipeline(Pipeline):
     config_class = RgbdPipelineConfig
 
     def __init__(self, options: RgbdPipelineConfig | None = None,
-                 model: RgbdClassModel | None = None):
+                 model: RgbdClassModel | None = None, cue_model=None):
         super().__init__(options)
         o: RgbdPipelineConfig = self.options
+        self.cue = LearnedCue(o.cue, "rgbd", o.cue_model, o.cue_threshold, o.cue_threads,
+                              model=cue_model)
         if o.max_range_m <= o.min_range_m:
             raise ValueError("perception.rgbd: max_range_m must exceed min_range_m")
         if model is None:
@@ -192,12 +215,17 @@ class RgbdPipeline(Pipeline):
             "suspected_px": int(r.suspected.sum()), "obstacle_px": int(r.obstacles.sum()),
             "groups_colour": r.groups_colour, "groups_texture": r.groups_texture,
             "groups_holes": r.groups_holes, "groups_raised": r.groups_raised,
+            "groups_learned": r.groups_learned,
             "texture_ran": r.texture_class is not None})
+
+    def notes(self) -> dict:
+        return self.cue.notes()
 
     def analyse(self, inputs: SensorInputs, detail: bool = True) -> RgbdResult:
         """One frame, every intermediate map in the result; ``detail=False`` (process()) skips
         the slope map in degrees, which the decision does not need."""
         o: RgbdPipelineConfig = self.options
+        self.cue.check()                  # a required cue that cannot run: no decision at all
         fr = inputs.rgbd
         color, depth = fr.color, fr.depth_m
         if color.shape[:2] != depth.shape:
@@ -242,16 +270,21 @@ class RgbdPipeline(Pipeline):
             cmap = np.full(sus.shape, NOT_CLASSIFIED, np.int16)
             cmap[want] = self.colour.classify(colour_features(color[want], o.colour_space))
 
+        # beyond the paper: the learned cue's obstacle-like cells (issue #8)
+        learned = self.cue.mask(color, sus.shape, 0, o.cue_open_cells, o.cue_erode_px) \
+            if self.cue.enabled and sus.any() else None
         # 3. texture, and 4. the decision
         tmap = None
         if o.texture == "always":
             tmap = self._texture_map(color, sus)
-            d = decide(sus, surface, cmap, tmap, self.rule, height, raised)
+            if learned is not None and o.cue_texture_veto:
+                learned = learned & ~self._traversable_texture(tmap)
+            d = decide(sus, surface, cmap, tmap, self.rule, height, raised, learned)
         else:
-            d = decide(sus, surface, cmap, None, self.rule, height, raised)
+            d = decide(sus, surface, cmap, None, self.rule, height, raised, learned)
             if o.texture == "after-colour" and d.n_colour > 0:
                 tmap = self._texture_map(color, sus)
-                d = decide(sus, surface, cmap, tmap, self.rule, height, raised)
+                d = decide(sus, surface, cmap, tmap, self.rule, height, raised, learned)
         col_obs, tex_obs, n_col, n_tex = d.colour, d.texture, d.n_colour, d.n_texture
 
         obs = d.obstacles
@@ -277,7 +310,11 @@ class RgbdPipeline(Pipeline):
                 pts = np.concatenate([pts, hpts])
             obs = obs | hole_obs
         return RgbdResult(slope, sus, surface, cmap, tmap, col_obs, tex_obs, hole_obs, obs,
-                          n_col, n_tex, n_holes, pts, d.raised, d.n_raised)
+                          n_col, n_tex, n_holes, pts, d.raised, d.n_raised, d.learned,
+                          d.n_learned)
+
+    def _traversable_texture(self, tmap: np.ndarray) -> np.ndarray:
+        return ~not_traversable(tmap, list(self.traversable_idx)) & (tmap >= 0)
 
     # ------------------------------------------------------------------------------------------
     def _texture_map(self, color: np.ndarray, sus: np.ndarray) -> np.ndarray:

@@ -163,12 +163,16 @@ class Decision:
     n_texture: int
     raised: np.ndarray | None = None     # bool: raised level surfaces of no traversable colour
     n_raised: int = 0
+    learned: np.ndarray | None = None    # bool: pixels of learned-cue obstacle groups
+    n_learned: int = 0
 
     @property
     def obstacles(self) -> np.ndarray:
         out = self.colour | self.texture if self.texture is not None else self.colour.copy()
         if self.raised is not None:
             out |= self.raised
+        if self.learned is not None:
+            out |= self.learned
         return out
 
 
@@ -201,7 +205,8 @@ def _blocked(class_map: np.ndarray, rule: Rule, low: np.ndarray | None,
 
 def decide(suspected: np.ndarray, surface: np.ndarray, colour_class: np.ndarray,
            texture_class: np.ndarray | None, rule: Rule,
-           height_m: np.ndarray | None = None, raised: np.ndarray | None = None) -> Decision:
+           height_m: np.ndarray | None = None, raised: np.ndarray | None = None,
+           learned: np.ndarray | None = None) -> Decision:
     """The obstacle decision from the cues.
 
     ``suspected``/``surface``: bool maps from the slope step (``surface`` already limited to low
@@ -210,7 +215,11 @@ def decide(suspected: np.ndarray, surface: np.ndarray, colour_class: np.ndarray,
     ``texture_class`` None = texture did not run); ``height_m``: height above the ground plane
     (needed by ``ground_classes``); ``raised``: level pixels well above the ground (the top of a
     box too near for its face to be in view, a bush top) -- a group of them of no traversable
-    colour (``colour_class`` must hold their classes too) is an obstacle."""
+    colour (``colour_class`` must hold their classes too) is an obstacle. ``learned`` (bool
+    map, beyond the paper, issue #8): pixels the learned cue calls obstacle-like; suspected ones
+    among them form groups under the same rules as texture's (size, contact within
+    ``texture_contact_px``, height), whatever their colour or texture class -- the cue is
+    there for obstacles coloured and textured like a traversable class."""
     low = tall = None
     if rule.ground_classes and rule.ground_max_height_m > 0 and height_m is not None:
         low = height_m < np.float32(rule.ground_max_height_m)
@@ -231,13 +240,16 @@ def decide(suspected: np.ndarray, surface: np.ndarray, colour_class: np.ndarray,
         else:
             ras, n_ras = obstacle_groups(raised & colour_blocked, np.ones_like(raised),
                                          rule.min_pixels, 1)
+    grp["contact_px"] = rule.texture_contact_px or rule.contact_px
+    lrn, n_lrn = None, 0
+    if learned is not None:
+        lrn, n_lrn = obstacle_groups(suspected & learned, surface, **grp)
     if texture_class is None:
-        return Decision(col, None, n_col, 0, ras, n_ras)
+        return Decision(col, None, n_col, 0, ras, n_ras, lrn, n_lrn)
     if rule.texture_role == "traversable-colour":
         cand = suspected & ~colour_blocked & _blocked(texture_class, rule, low,
                                                       rule.texture_undefined)
     else:
         cand = suspected & _blocked(texture_class, rule, low, rule.texture_undefined)
-    grp["contact_px"] = rule.texture_contact_px or rule.contact_px
     tex, n_tex = obstacle_groups(cand, surface, **grp)
-    return Decision(col, tex, n_col, n_tex, ras, n_ras)
+    return Decision(col, tex, n_col, n_tex, ras, n_ras, lrn, n_lrn)

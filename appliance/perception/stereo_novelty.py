@@ -20,6 +20,7 @@ import numpy as np
 from appliance.config import _f
 
 from .base import Detections, Pipeline, SensorInputs
+from .cue import LearnedCue
 from .novelty import NoveltyDetector, dilate_cells, mask_to_camera, obstacle_cells
 from .stereo import (StereoConfig, StereoPipeline, dedupe_cells, disparity_regions, downscale,
                      height_band, make_matcher, mask_boxes, match_factor,
@@ -96,6 +97,21 @@ class StereoNoveltyConfig(StereoConfig):
                                          "than the ground at the region's last row, or than "
                                          "the nearest coarse depth seen in it (without the "
                                          "coarse pass this check is off: full near range)")
+    cue: str = _f("off", choices=("off", "optional", "required"),
+                  doc="beyond the papers: the learned cue (ONNX, docs/learned-cue.md); a cell it "
+                      "calls obstacle-like is matched densely too, novel or not. required: a "
+                      "missing or broken model is a fault (STOP); optional: the box runs "
+                      "without it and says so in status")
+    cue_model: str = _f("", doc="cue model file from `fieldguard train-cue`; empty = the "
+                                "shipped stubble model (appliance/models/cue-stubble.onnx)")
+    cue_threshold: float = _f(0.0, lo=0.0, hi=1.0,
+                              doc="P(obstacle-like) above which a cell is matched; 0 = the "
+                                  "threshold stored in the model")
+    cue_open_cells: int = _f(2, lo=0, hi=8, doc="cue: a cell counts only inside a square "
+                                                "block of this many obstacle-like cells "
+                                                "(0/1 = any)")
+    cue_dilate_cells: int = _f(0, lo=0, hi=10, doc="cue: dilation of its cells")
+    cue_threads: int = _f(1, lo=1, hi=8, doc="cue: onnxruntime intra-op threads")
     near_margin: float = _f(1.15, lo=1.0, hi=4.0,
                             doc="near_from_foot: the coarse disparity seen is scaled by this "
                                 "(coarse depth is rough) before it bounds the search")
@@ -106,8 +122,11 @@ class StereoNoveltyPipeline(Pipeline):
     requires = ("stereo",)
     config_class = StereoNoveltyConfig
 
-    def __init__(self, options=None, background: bool = True):
+    def __init__(self, options=None, background: bool = True, cue_model=None):
         super().__init__(options)
+        o = self.options
+        self.cue = LearnedCue(o.cue, "stereo", o.cue_model, o.cue_threshold, o.cue_threads,
+                              model=cue_model)
         self.novelty = NoveltyDetector(self.options, background=background)
         self._stereo = StereoPipeline(self.options)
         self.last = None                       # (NoveltyResult, camera mask) for tools/tests
@@ -155,7 +174,16 @@ class StereoNoveltyPipeline(Pipeline):
         cues = {}
         if o.depth_cue != "off":
             cues["depth"] = self._depth_cue(fr, vehicle, res, kd)
+        if self.cue.enabled:
+            # on the camera-frame image the novelty grid was computed on (1/kd); a pixel mask
+            # of that size (the model's cells need not be the novelty grid's)
+            img = self._pair(fr, kd)[0]
+            cues["learned"] = self.cue.mask(img, img.shape[:2], o.cue_dilate_cells,
+                                            o.cue_open_cells)
         return cues
+
+    def notes(self) -> dict:
+        return self.cue.notes()
 
     def _depth_cue(self, fr, vehicle, res, kd: int) -> np.ndarray:
         """Coarse full-frame stereo (``depth_cue`` matcher, image at most
@@ -251,6 +279,7 @@ class StereoNoveltyPipeline(Pipeline):
     def process(self, inputs: SensorInputs) -> Detections:
         fr = inputs.stereo
         o: StereoNoveltyConfig = self.options
+        self.cue.check()                  # a required cue that cannot run: no decision at all
         cam = fr.calib.camera
         K = cam.matrix()
         M = fr.calib.mount.camera_to_vehicle()
@@ -299,7 +328,10 @@ class StereoNoveltyPipeline(Pipeline):
         return Detections(points_xy=xy, debug={
             "novel_fraction": float(res.mask.mean()),
             "novel_cells_raw": int(res.raw.sum()),
-            "cue_cells": {n: int(np.count_nonzero(c)) for n, c in extra.items()},
+            # cells of the novelty grid each cue raised (a pixel mask counts in cell areas)
+            "cue_cells": {n: int(np.count_nonzero(c)) if c.shape == res.mask.shape else
+                          int(round(np.count_nonzero(c) / float(res.cell_px ** 2)))
+                          for n, c in extra.items() if c is not None},
             "model_samples": self.novelty.model.size,
             "model_updates": self.novelty.model.updates,
             "stereo_px_fraction": work / float(h * w),
