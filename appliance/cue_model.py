@@ -2,12 +2,14 @@
 
 A cue model is an ONNX graph written by ``fieldguard train-cue`` (appliance.cue_train):
 
-    input   "features"       float32 [N, F]   F = N_FEATURES of the feature set below
+    input   "features"       float32 [N, F]   F = the number of features of its feature set
     output  "probabilities"  float32 [N, 2]   column 1 = P(obstacle-like) per cell
     metadata (ONNX metadata_props, all strings):
         fieldguard_cue_version   "1"   (a reader refuses any other)
-        feature_set              "fieldguard-cell-v1" (appliance.perception.cue_features)
-        n_features               "65"
+        feature_set              "fieldguard-cell-v1" (images; 65 features) or
+                                 "fieldguard-cell-depth-v1" (RGB-D; 71), see
+                                 appliance.perception.cue_features
+        n_features               "65" / "71"
         cell_px                  cell size the features were computed on, at image width
         image_width_px           ... of this many pixels (the cue rescales to it)
         threshold                P above which a cell is obstacle-like (chosen at training)
@@ -30,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from appliance.perception.cue_features import FEATURE_SET, N_FEATURES
+from appliance.perception.cue_features import DEPTH_FEATURE_SET, FEATURE_SETS
 from hal.errors import ConfigError
 
 log = logging.getLogger("fieldguard.cue")
@@ -122,9 +124,11 @@ class CueModel:
         missing = [k for k in _REQUIRED_META if k not in meta]
         if missing:
             raise fail(f"metadata lacks {', '.join(missing)}")
-        if meta["feature_set"] != FEATURE_SET:
+        if meta["feature_set"] not in FEATURE_SETS:
             raise fail(f"trained on features {meta['feature_set']!r}; this fieldguard computes "
-                       f"{FEATURE_SET!r} (retrain with `fieldguard train-cue`)")
+                       f"{' or '.join(map(repr, FEATURE_SETS))} (retrain with "
+                       "`fieldguard train-cue`)")
+        n_expected = len(FEATURE_SETS[meta["feature_set"]])
         try:
             n_features = int(meta["n_features"])
             cell_px = int(meta["cell_px"])
@@ -132,8 +136,9 @@ class CueModel:
             threshold = float(meta["threshold"])
         except ValueError as exc:
             raise fail(f"bad metadata value: {exc}")
-        if n_features != N_FEATURES:
-            raise fail(f"metadata says {n_features} features; {FEATURE_SET} has {N_FEATURES}")
+        if n_features != n_expected:
+            raise fail(f"metadata says {n_features} features; {meta['feature_set']} has "
+                       f"{n_expected}")
         if not 4 <= cell_px <= 512 or width < cell_px or not 0.0 < threshold < 1.0:
             raise fail(f"metadata out of range: cell_px={cell_px}, image_width_px={width}, "
                        f"threshold={threshold} (expected 4..512, >= cell_px, 0..1)")
@@ -143,9 +148,9 @@ class CueModel:
         if len(ins) != 1 or ins[0].name != INPUT_NAME:
             raise fail(f"inputs {[i.name for i in ins]}; expected one input {INPUT_NAME!r}")
         shape = ins[0].shape
-        if ins[0].type != "tensor(float)" or len(shape) != 2 or shape[1] != N_FEATURES:
+        if ins[0].type != "tensor(float)" or len(shape) != 2 or shape[1] != n_expected:
             raise fail(f"input {INPUT_NAME!r} is {ins[0].type} of shape {shape}; expected "
-                       f"float32 of shape [N, {N_FEATURES}]")
+                       f"float32 of shape [N, {n_expected}]")
         outs = {o.name: o for o in self._session.get_outputs()}
         if OUTPUT_NAME not in outs:
             raise fail(f"outputs {sorted(outs)}; expected an output {OUTPUT_NAME!r}")
@@ -160,9 +165,13 @@ class CueModel:
                             n_features, cell_px, width, threshold, meta["domain"], trained)
 
     # ---- inference --------------------------------------------------------------------------
+    @property
+    def uses_depth(self) -> bool:
+        return self.info.feature_set == DEPTH_FEATURE_SET
+
     def score(self, features: np.ndarray) -> np.ndarray:
         """(N, F) float32 features -> (N,) float32 P(obstacle-like)."""
-        x = np.ascontiguousarray(features.reshape(-1, N_FEATURES), np.float32)
+        x = np.ascontiguousarray(features.reshape(-1, self.info.n_features), np.float32)
         if len(x) == 0:
             return np.zeros(0, np.float32)
         out = self._session.run([OUTPUT_NAME], {INPUT_NAME: x})[0]

@@ -7,12 +7,14 @@ area is at least half inside a silhouette is a positive; a cell with no silhouet
 negative, right up to the silhouette's edge (so the cue learns to stop at an obstacle's
 outline, not a cell beyond it); a cell less than half inside is left out (unsure). With
 RGB-D, silhouette pixels whose depth is off the box's depth span by more than 0.3 m are not
-the obstacle (a bush in front of it, the path behind), and cells whose depth is mostly outside
-the camera's range are left out (truth lists only obstacles within the depth range, so a far
-obstacle there would be a wrong negative).
+the obstacle (a bush in front of it, the path behind), and cells with less than a quarter of
+their depth inside the camera's range are left out (truth lists only obstacles within the
+depth range, so a far obstacle there would be a wrong negative; a cell on the edge of a bush
+against the far view is kept: it is the hardest negative there is).
 
-The model: a scikit-learn pipeline (standardisation, a two-layer perceptron) on the 65 cell
-features of appliance.perception.cue_features, exported to ONNX with skl2onnx and checked
+The model: a scikit-learn pipeline (standardisation, a two-layer perceptron) on the cell
+features of appliance.perception.cue_features (65 from the image; RGB-D runs add 6 of the
+depth's shape), exported to ONNX with skl2onnx and checked
 against scikit-learn's own output before it is written. The decision threshold is chosen on
 held-out frames (every 5th block of 10 frames of each run) as the lowest that keeps the share of
 negative cells called obstacle-like at or under ``max_fpr``. Needs the ``train`` extra
@@ -31,7 +33,8 @@ import cv2
 import numpy as np
 
 from appliance.cue_model import INPUT_NAME, OUTPUT_NAME, VERSION, CueModel, CueModelError
-from appliance.perception.cue_features import FEATURE_SET, N_FEATURES, cell_features, grid_shape
+from appliance.perception.cue_features import (DEPTH_FEATURE_SET, FEATURE_SET, FEATURE_SETS,
+                                               cell_features, grid_shape)
 from drivers.runfolder import RunReader
 from hal.types import Mount, PinholeCalibration
 
@@ -107,7 +110,7 @@ def cell_labels(truth: list[dict], cam: PinholeCalibration, mount: Mount,
         lo, hi = depth_range
         d = depth_m[:rows * cell_px, :cols * cell_px]
         valid = ((d >= lo) & (d <= hi)).astype(np.float32)
-        in_range = cv2.resize(valid, (cols, rows), interpolation=cv2.INTER_AREA) >= 0.5
+        in_range = cv2.resize(valid, (cols, rows), interpolation=cv2.INTER_AREA) >= 0.25
         label[(label == 0) & ~in_range] = -1
     owner[label != 1] = ""
     return label, owner
@@ -208,13 +211,14 @@ def build_dataset(runs: list[str | os.PathLike], domain: str | None = None, ever
             lab, owner = cell_labels(rd.truth(i) or [], cam, mount, (w, h), cell_px, depth,
                                      drange)
             for variant in range(1 + (0 if is_val else max(0, augment))):
-                feats = cell_features(img if variant == 0 else jitter(img, rng), cell_px)
+                feats = cell_features(img if variant == 0 else jitter(img, rng), cell_px,
+                                      depth if domain == "rgbd" else None)
                 pos = np.flatnonzero(lab.ravel() == 1)
                 neg = np.flatnonzero(lab.ravel() == 0)
                 if len(neg) > neg_per_frame:
                     neg = rng.choice(neg, neg_per_frame, replace=False)
                 take = np.concatenate([pos, neg])
-                f = feats.reshape(-1, N_FEATURES)
+                f = feats.reshape(-1, feats.shape[-1])
                 xs.append(f[take])
                 ys.append(lab.ravel()[take])
                 cs.append(owner.ravel()[take])
@@ -296,7 +300,8 @@ def export(model, path: str | os.PathLike, meta: dict) -> Path:
     """ONNX file with fieldguard's metadata; returns its path."""
     _, _, _, convert_sklearn, FloatTensorType = _sklearn()
     mlp = model.steps[-1][1]
-    onx = convert_sklearn(model, initial_types=[(INPUT_NAME, FloatTensorType([None, N_FEATURES]))],
+    n = int(meta["n_features"])
+    onx = convert_sklearn(model, initial_types=[(INPUT_NAME, FloatTensorType([None, n]))],
                           options={id(mlp): {"zipmap": False}}, target_opset=17)
     # skl2onnx names its outputs "label" and "probabilities"; make sure of ours
     names = [o.name for o in onx.graph.output]
@@ -342,8 +347,9 @@ def train_cue(runs, out, domain=None, every=2, width=640, cell_px=16, hidden=(32
         "train": report(model.predict_proba(ds.x[~ds.val])[:, 1], ds.y[~ds.val],
                         ds.cls[~ds.val], thr),
     }
-    meta = {"fieldguard_cue_version": VERSION, "feature_set": FEATURE_SET,
-            "n_features": str(N_FEATURES), "cell_px": str(cell_px),
+    fset = DEPTH_FEATURE_SET if domain == "rgbd" else FEATURE_SET
+    meta = {"fieldguard_cue_version": VERSION, "feature_set": fset,
+            "n_features": str(len(FEATURE_SETS[fset])), "cell_px": str(cell_px),
             "image_width_px": str(width), "threshold": f"{thr:.6f}", "domain": domain,
             "trained_on": summary}
     path = export(model, out, meta)

@@ -56,6 +56,34 @@ def test_features_of_known_images():
         cell_features(np.zeros((32, 32, 3), np.float32), 16)
 
 
+def test_depth_features_of_known_surfaces():
+    from appliance.perception.cue_features import DEPTH_FEATURE_NAMES, depth_features
+    col = {n: i - N_FEATURES for i, n in enumerate(DEPTH_FEATURE_NAMES) if i >= N_FEATURES}
+    h, w, c = 64, 64, 16
+    wall = np.full((h, w), 2.5, np.float32)                     # a face square to the camera
+    f = depth_features(wall, 4, 4, c)
+    assert np.allclose(f[..., col["depth_valid"]], 1) and np.allclose(f[..., col["depth_mean"]], 0.5)
+    for n in ("dz_dv", "dz_du", "dz_dv_spread", "dz_du_spread"):
+        assert np.allclose(f[..., col[n]], 0, atol=1e-6), n
+    ramp = np.tile(np.linspace(5.0, 1.0, h, dtype=np.float32)[:, None], (1, w))  # the ground
+    g = depth_features(ramp, 4, 4, c)
+    step = 4.0 / (h - 1)
+    inner = g[1:-1, :]                                         # away from the image border
+    assert np.allclose(inner[..., col["dz_dv"]] * np.maximum(
+        inner[..., col["depth_mean"]] * 5.0, 0.1), -step, rtol=0.05)
+    assert np.all(inner[..., col["dz_dv_spread"]] < 1e-3)
+    rough = wall + np.random.default_rng(0).uniform(-0.2, 0.2, (h, w)).astype(np.float32)
+    assert np.all(depth_features(rough, 4, 4, c)[..., col["dz_dv_spread"]] > 0.01)
+    holes = wall.copy()
+    holes[:, :32] = 0                                          # no depth in the left half
+    hf = depth_features(holes, 4, 4, c)
+    assert np.allclose(hf[:, :2, col["depth_valid"]], 0) and np.allclose(hf[:, 2:, col["depth_valid"]], 1)
+    full = cell_features(np.zeros((h, w, 3), np.uint8), c, wall)
+    assert full.shape == (4, 4, len(DEPTH_FEATURE_NAMES)) == (4, 4, 71)
+    with pytest.raises(ValueError, match="registered"):
+        cell_features(np.zeros((h, w, 3), np.uint8), c, wall[:32])
+
+
 # ---- labels from truth --------------------------------------------------------------------------
 def test_labels_follow_the_projected_box():
     from appliance.cue_train import cell_labels, project_silhouette
@@ -232,6 +260,10 @@ def _stereo_loop(tmp_path, cue_mode, cue_model):
                             Mount(x_m=1.0, z_m=1.5, pitch_deg=10.0))
 
     class HandStereo(StereoCamera):
+        @property
+        def calibration(self):
+            return cal
+
         def service(self, now_ns):
             self._publish(StereoFrame(stamp_ns=now_ns, seq=0, left=left, right=right,
                                       calib=cal, illumination="day"))

@@ -73,21 +73,29 @@ class LearnedCue:
         if self.mode == "required" and self.model is None:
             raise CueUnavailable(f"learned cue required but unavailable: {self.error}")
 
-    def scores(self, bgr: np.ndarray) -> tuple[np.ndarray, float] | None:
+    def scores(self, bgr: np.ndarray, depth_m: np.ndarray | None = None
+               ) -> tuple[np.ndarray, float] | None:
         """(P(obstacle-like) per cell (rows, cols), cell size in pixels of ``bgr``), or None
-        when the cue is off or (optional) unavailable. The image is resized to the width the
-        model was trained at."""
+        when the cue is off or (optional) unavailable. The image (and the registered depth, for
+        a model of the depth feature set) is resized to the width the model was trained at."""
         if self.model is None:
             self.check()
             return None
         info = self.model.info
         h, w = bgr.shape[:2]
         k = info.image_width_px / float(w)
+        size = (info.image_width_px, max(info.cell_px, int(round(h * k))))
         img = bgr if abs(k - 1.0) < 1e-6 else cv2.resize(
-            bgr, (info.image_width_px, max(info.cell_px, int(round(h * k)))),
-            interpolation=cv2.INTER_AREA if k < 1 else cv2.INTER_LINEAR)
+            bgr, size, interpolation=cv2.INTER_AREA if k < 1 else cv2.INTER_LINEAR)
+        depth = None
+        if getattr(self.model, "uses_depth", False):
+            if depth_m is None:
+                raise CueUnavailable(f"cue model {self.model.path} needs registered depth "
+                                     "(an RGB-D model), and none was given")
+            depth = depth_m if abs(k - 1.0) < 1e-6 else cv2.resize(
+                depth_m, size, interpolation=cv2.INTER_NEAREST)
         try:
-            feats = cell_features(img, info.cell_px)
+            feats = cell_features(img, info.cell_px, depth)
             p = self.model.score(feats.reshape(-1, feats.shape[-1])).reshape(feats.shape[:2])
         except Exception as exc:
             self.failures += 1
@@ -103,18 +111,29 @@ class LearnedCue:
         return p, info.cell_px / k
 
     def mask(self, bgr: np.ndarray, out_shape: tuple[int, int], dilate_cells: int = 0,
-             open_cells: int = 0, erode_px: int = 0) -> np.ndarray | None:
+             open_cells: int = 0, erode_px: int = 0, depth_m: np.ndarray | None = None,
+             min_depth_valid: float = 0.0) -> np.ndarray | None:
         """bool (H, W) = ``out_shape`` pixel mask of the obstacle-like cells of ``bgr`` (which
         may be of another size: the mask is scaled to ``out_shape``), or None (see scores).
         ``open_cells`` > 1: only cells that are part of an ``open_cells`` square block of
         obstacle-like cells count (a morphological opening: a lone cell is no obstacle);
         ``dilate_cells``: then grown by that many cells; ``erode_px``: the pixel mask then
-        shrunk by that many pixels (a cell on an obstacle's outline is partly background)."""
-        got = self.scores(bgr)
+        shrunk by that many pixels (a cell on an obstacle's outline is partly background).
+        ``min_depth_valid`` > 0 (with ``depth_m``): a cell with less valid depth than that share
+        is not obstacle-like here (a shiny object's cells hold only the depth of what is
+        around it; depth holes have their own rule)."""
+        got = self.scores(bgr, depth_m)
         if got is None:
             return None
         p, _cell = got
         cells = (p > np.float32(self.threshold)).astype(np.uint8)
+        if min_depth_valid > 0 and depth_m is not None and cells.any():
+            rows, cols = cells.shape
+            c = _cell * depth_m.shape[1] / float(bgr.shape[1])
+            hh, ww = int(round(rows * c)), int(round(cols * c))
+            valid = (depth_m[:hh, :ww] > 0).astype(np.float32)
+            frac = cv2.resize(valid, (cols, rows), interpolation=cv2.INTER_AREA)
+            cells[frac < np.float32(min_depth_valid)] = 0
         if open_cells > 1 and cells.any():
             cells = cv2.morphologyEx(cells, cv2.MORPH_OPEN,
                                      np.ones((open_cells, open_cells), np.uint8))

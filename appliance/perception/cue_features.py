@@ -17,9 +17,13 @@ both. The learned cue scores each image cell from what colour statistics leave o
   its image row of cells (at a given row most cells are the ground at one distance) (23);
 - neighbourhood: the 3x3 box mean of the colour and gradient features (10).
 
-65 numbers per cell, float32. ``FEATURE_SET`` names this exact definition; a model file records
-the set it was trained on and the loader refuses any other (appliance.cue_model). Pure code:
-arrays in, arrays out.
+65 numbers per cell, float32: the feature set ``FEATURE_SET`` (camera images alone, the
+stereo pipeline's). With registered depth (RGB-D) the set ``DEPTH_FEATURE_SET`` adds 6
+numbers of shape the image cannot give: the share of valid depth, the mean depth, and the mean
+and spread of the vertical and horizontal depth gradients relative to the depth (a crate's
+face is a smooth plane, a bush's leaves are rough, the ground recedes evenly). A model file
+records the set it was trained on and the loader refuses any other (appliance.cue_model).
+Pure code: arrays in, arrays out.
 """
 from __future__ import annotations
 
@@ -43,6 +47,11 @@ FEATURE_NAMES = tuple(_BASE_NAMES
                       + [f"row_ctx_{_BASE_NAMES[i]}" for i in _ROW_CONTEXT]
                       + [f"nbhd_{_BASE_NAMES[i]}" for i in _NEIGHBOURHOOD])
 N_FEATURES = len(FEATURE_NAMES)
+DEPTH_FEATURE_SET = "fieldguard-cell-depth-v1"
+DEPTH_FEATURE_NAMES = FEATURE_NAMES + ("depth_valid", "depth_mean", "dz_dv", "dz_du",
+                                       "dz_dv_spread", "dz_du_spread")
+FEATURE_SETS = {FEATURE_SET: FEATURE_NAMES, DEPTH_FEATURE_SET: DEPTH_FEATURE_NAMES}
+DEPTH_SCALE_M = 5.0        # depth_mean is depth / this
 ORIENT_BINS = 6
 
 
@@ -81,9 +90,42 @@ def grid_shape(image_shape: tuple[int, ...], cell_px: int) -> tuple[int, int]:
     return int(image_shape[0]) // cell_px, int(image_shape[1]) // cell_px
 
 
-def cell_features(bgr: np.ndarray, cell_px: int) -> np.ndarray:
-    """(rows, cols, N_FEATURES) float32 features of the whole ``cell_px`` cells of a BGR uint8
-    image (any size; a grey image is taken as BGR). Raises ValueError on an image smaller than
+def depth_features(depth_m: np.ndarray, rows: int, cols: int, cell_px: int) -> np.ndarray:
+    """(rows, cols, 6) depth-shape features of the cells (depth in metres, 0 = no reading).
+    Gradients only where the pixel and its 8 neighbours all have depth."""
+    c = cell_px
+    z = np.ascontiguousarray(depth_m[:rows * c, :cols * c], np.float32)
+    valid = (z > 0).astype(np.float32)
+    area = (cols, rows)
+
+    def mean(x):
+        return cv2.resize(x, area, interpolation=cv2.INTER_AREA)
+
+    inner = cv2.erode(valid, np.ones((3, 3), np.uint8))      # pixel and neighbours valid
+    zv = cv2.Sobel(z, cv2.CV_32F, 0, 1, ksize=3) * np.float32(0.125) * inner
+    zu = cv2.Sobel(z, cv2.CV_32F, 1, 0, ksize=3) * np.float32(0.125) * inner
+    n_in = mean(inner)
+    safe = np.maximum(n_in, 1e-3)
+    vf = mean(valid)
+    zm = mean(z) / np.maximum(vf, 1e-3)                        # mean over valid pixels
+    zr = np.maximum(zm, 0.1)
+    out = np.zeros((rows, cols, 6), np.float32)
+    out[..., 0] = vf
+    out[..., 1] = zm / DEPTH_SCALE_M
+    for k, g in ((2, zv), (3, zu)):
+        m1 = mean(g) / safe
+        m2 = mean(g * g) / safe
+        out[..., k] = np.clip(m1 / zr, -1, 1)                 # slope per pixel, relative
+        out[..., k + 2] = np.clip(np.sqrt(np.maximum(m2 - m1 * m1, 0)) / zr, 0, 1)
+    out[n_in <= 0, 2:] = 0.0
+    return out
+
+
+def cell_features(bgr: np.ndarray, cell_px: int, depth_m: np.ndarray | None = None
+                  ) -> np.ndarray:
+    """(rows, cols, F) float32 features of the whole ``cell_px`` cells of a BGR uint8 image
+    (any size; a grey image is taken as BGR): F = N_FEATURES, or with ``depth_m`` (registered,
+    the image's size) the DEPTH_FEATURE_SET's 71. Raises ValueError on an image smaller than
     one cell or a cell under 4 px."""
     img = np.asarray(bgr)
     if img.ndim == 2:
@@ -147,4 +189,10 @@ def cell_features(bgr: np.ndarray, cell_px: int) -> np.ndarray:
                   borderType=cv2.BORDER_REPLICATE)
     if nb.ndim == 2:                       # OpenCV drops a unit axis
         nb = nb.reshape(rows, cols, -1)
-    return np.ascontiguousarray(np.concatenate([base, row_ctx, nb], axis=-1), np.float32)
+    parts = [base, row_ctx, nb]
+    if depth_m is not None:
+        if depth_m.shape[:2] != np.asarray(bgr).shape[:2]:
+            raise ValueError(f"depth {depth_m.shape[:2]} and image {np.asarray(bgr).shape[:2]} "
+                             "differ (depth must be registered to the image)")
+        parts.append(depth_features(depth_m, rows, cols, c))
+    return np.ascontiguousarray(np.concatenate(parts, axis=-1), np.float32)

@@ -132,6 +132,14 @@ class RgbdPipelineConfig:
     cue_texture_veto: bool = _f(False, doc="cue: a pixel whose texture window is of a "
                                            "traversable class is not turned into an obstacle "
                                            "by the cue (texture and cue must not disagree)")
+    cue_min_depth_valid: float = _f(0.5, lo=0.0, hi=1.0,
+                                    doc="cue: a cell with less valid depth than this share "
+                                        "is not used (a shiny object's cells hold only the "
+                                        "depth around it; holes have their own rule)")
+    cue_depth_span_m: float = _f(0.6, lo=0.0, hi=10.0,
+                                 doc="cue: pixels of a cue group farther than its nearest "
+                                     "tenth plus this are dropped (the cells on its outline "
+                                     "hold the bush behind it); 0 = keep all")
     cue_erode_px: int = _f(4, lo=0, hi=32, doc="cue: its pixel mask shrunk by this much (the "
                                                "cells on an outline are partly background)")
 
@@ -271,7 +279,8 @@ class RgbdPipeline(Pipeline):
             cmap[want] = self.colour.classify(colour_features(color[want], o.colour_space))
 
         # beyond the paper: the learned cue's obstacle-like cells (issue #8)
-        learned = self.cue.mask(color, sus.shape, 0, o.cue_open_cells, o.cue_erode_px) \
+        learned = self.cue.mask(color, sus.shape, 0, o.cue_open_cells, o.cue_erode_px,
+                                depth, o.cue_min_depth_valid) \
             if self.cue.enabled and sus.any() else None
         # 3. texture, and 4. the decision
         tmap = None
@@ -286,6 +295,8 @@ class RgbdPipeline(Pipeline):
                 tmap = self._texture_map(color, sus)
                 d = decide(sus, surface, cmap, tmap, self.rule, height, raised, learned)
         col_obs, tex_obs, n_col, n_tex = d.colour, d.texture, d.n_colour, d.n_texture
+        if d.learned is not None and d.n_learned and o.cue_depth_span_m > 0:
+            d.learned = self._depth_trim(d.learned, depth, o.cue_depth_span_m)
 
         obs = d.obstacles
         proj = obs
@@ -312,6 +323,23 @@ class RgbdPipeline(Pipeline):
         return RgbdResult(slope, sus, surface, cmap, tmap, col_obs, tex_obs, hole_obs, obs,
                           n_col, n_tex, n_holes, pts, d.raised, d.n_raised, d.learned,
                           d.n_learned)
+
+    @staticmethod
+    def _depth_trim(mask: np.ndarray, depth: np.ndarray, span_m: float) -> np.ndarray:
+        """Each connected group of ``mask`` keeps the pixels no farther than its nearest tenth
+        (10th percentile of its valid depth) plus ``span_m``."""
+        n, labels = cv2.connectedComponents(mask.view(np.uint8), connectivity=8,
+                                            ltype=cv2.CV_32S)
+        out = np.zeros_like(mask)
+        for k in range(1, n):
+            g = labels == k
+            z = depth[g]
+            zv = z[z > 0]
+            if zv.size == 0:
+                continue
+            near = np.float32(np.percentile(zv, 10) + span_m)
+            out |= g & (depth > 0) & (depth <= near)
+        return out
 
     def _traversable_texture(self, tmap: np.ndarray) -> np.ndarray:
         return ~not_traversable(tmap, list(self.traversable_idx)) & (tmap >= 0)
