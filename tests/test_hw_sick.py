@@ -323,7 +323,9 @@ def test_daemon_stops_on_pulled_cable_and_recovers():
         emu.cmd("object 2.0")
         t_obj = rig.now()
         assert wait_for(lambda: rig.cycles_until(t_obj, "STOP") is not None, 2.0)
-        assert "obstacle" in rig.daemon.loop.last.output.reason
+        # (waited for: on a loaded machine a late scan can make a cycle's reason "stale")
+        assert wait_for(lambda: "obstacle" in rig.daemon.loop.last.output.reason, 2.0), \
+            rig.daemon.loop.last.output.reason
         emu.cmd("clear")
         assert wait_for(lambda: rig.state == "CLEAR", 4.0)
         # (garbage, truncated and corrupt telegrams: test_daemon_stops_on_bad_telegrams...)
@@ -357,14 +359,21 @@ def test_daemon_stops_on_bad_telegrams_and_recovers():
                                    "port": emu.port}})
         dev = rig.daemon.devices["laser"]
         assert wait_for(lambda: rig.state == "CLEAR", 5.0), rig.cycles[-3:]
-        # split telegrams: the gate stays CLEAR (12 cycles, 1.2 s: ~30 split telegrams)
+        # split telegrams are no fault (12 cycles, 1.2 s: ~30 split telegrams parsed). Only
+        # lateness is allowed: on a loaded machine the emulator, sharing the CPU with the
+        # daemon, can send a telegram > 60 ms late (stale), which has nothing to do with splits
         emu.split = True
+        wire = ("bad_telegrams", "truncated", "garbage_bytes", "overflows")
+        before = {k: dev.counters.get(k, 0) for k in wire}
+        scans0 = dev.counters.get("scans", 0)
         t = rig.now()
         assert wait_for(lambda: len([c for c in rig.cycles if c[0] >= t]) >= 12, 4.0)
         split = [c[:3] for c in rig.cycles if c[0] >= t]
         emu.split = False
-        assert all(c[1] == "CLEAR" and not c[2] for c in split), split
-        assert dev.counters.get("bad_telegrams", 0) == 0
+        assert all(f.startswith(("laser: stale", "pipeline laser: no fresh"))
+                   for c in split for f in c[2]), split
+        assert {k: dev.counters.get(k, 0) for k in wire} == before
+        assert dev.counters.get("scans", 0) - scans0 >= 20
         for command, fault, counter, reason in [
                 ("garbage 40", "garbage", "garbage_bytes", "outside any telegram"),
                 ("truncate", "truncate", "truncated", "cut short"),

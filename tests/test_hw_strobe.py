@@ -461,7 +461,11 @@ def test_daemon_switches_the_strobe_when_the_scene_goes_dark(tmp_path):
         assert wait_for(lambda: not emu.strobe and seen[-1][0] == DAY, 2.0)
         assert dn.switches == 2
         assert rig.daemon.status()["day_night"]["mode"] == DAY
-        assert all(c[1] == "CLEAR" for c in rig.cycles[-5:])     # switching is no fault
+        # switching is no fault: the gate is CLEAR, and nothing but lateness (a STATUS answer
+        # > 60 ms late when the machine is loaded: stale) has stopped it in the last cycles
+        assert wait_for(lambda: rig.state == "CLEAR", 2.0), rig.cycles[-5:]
+        assert not [f for c in rig.cycles[-8:] for f in c[2] if "stale" not in f], \
+            rig.cycles[-8:]
     finally:
         if rig:
             rig.close()
