@@ -32,7 +32,7 @@ def cmd_train_cue(a) -> int:
             raise CueModelError(f"{r}: not a run folder (no run.toml; see docs/run-format.md)")
     summary = train_cue(a.runs, a.out, domain=a.domain, every=a.every, width=a.width,
                         cell_px=a.cell_px, hidden=_hidden(a.hidden), max_fpr=a.max_fpr,
-                        seed=a.seed, augment=a.augment,
+                        seed=a.seed, augment=a.augment, negatives=a.negatives or (),
                         progress=Progress("train-cue: frames", 1),
                         log=lambda m: print(m, file=sys.stderr))
     if a.json:
@@ -61,11 +61,21 @@ def cmd_cue(a) -> int:
     cue = LearnedCue("required", a.domain, model=model)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    files = []
-    for f in a.images:
-        p = Path(f)
-        files += sorted(q for q in p.iterdir() if q.suffix.lower() in (".png", ".jpg", ".jpeg")) \
-            if p.is_dir() else [p]
+    def listing(items):
+        out = []
+        for f in items:
+            p = Path(f)
+            out += sorted(q for q in p.iterdir()
+                          if q.suffix.lower() in (".png", ".jpg", ".jpeg", ".pgm")) \
+                if p.is_dir() else [p]
+        return out
+
+    files = listing(a.images)
+    depths = listing(a.depth) if a.depth else []
+    if model.uses_depth and len(depths) != len(files):
+        print(f"fieldguard: error: {model.path} is an RGB-D model: give one --depth image per "
+              f"colour image ({len(files)} colour, {len(depths)} depth)", file=sys.stderr)
+        return 2
     prog = Progress("cue", len(files))
     rows = []
     for n, f in enumerate(files):
@@ -73,7 +83,15 @@ def cmd_cue(a) -> int:
         if img is None:
             print(f"fieldguard: error: {f}: not an image OpenCV can read", file=sys.stderr)
             return 2
-        p, cell = cue.scores(img)
+        depth = None
+        if model.uses_depth:
+            raw = cv2.imread(str(depths[n]), cv2.IMREAD_UNCHANGED)
+            if raw is None or raw.ndim != 2 or raw.shape != img.shape[:2]:
+                print(f"fieldguard: error: {depths[n]}: not a single-channel depth image of "
+                      f"{img.shape[1]}x{img.shape[0]} (registered to {f})", file=sys.stderr)
+                return 2
+            depth = raw.astype(np.float32) * np.float32(a.depth_unit)
+        p, cell = cue.scores(img, depth)
         hit = p > cue.threshold
         np.save(out / f"{f.stem}.cue.npy", p.astype(np.float32))
         ov = img.copy()
@@ -117,6 +135,8 @@ def register(sub) -> None:
     t.add_argument("--max-fpr", type=float, default=0.01,
                    help="share of held-out non-obstacle cells the threshold may call "
                         "obstacle-like")
+    t.add_argument("--negatives", nargs="+", metavar="IMAGE",
+                   help="photographs of the clear field (no obstacle): every cell a negative")
     t.add_argument("--augment", type=int, default=1,
                    help="photometric variants (light, white balance, gamma) per training frame")
     t.add_argument("--seed", type=int, default=0)
@@ -130,6 +150,10 @@ def register(sub) -> None:
     c.add_argument("images", nargs="+", metavar="IMAGES")
     c.add_argument("--model", default="", help="cue model (default: the shipped one)")
     c.add_argument("--domain", choices=("stereo", "rgbd"), default="stereo")
+    c.add_argument("--depth", nargs="+", metavar="DEPTH",
+                   help="registered 16-bit depth images, one per colour image (RGB-D models)")
+    c.add_argument("--depth-unit", type=float, default=0.001,
+                   help="metres per depth count (0.001 = mm; TUM: 0.0002)")
     c.add_argument("--out", required=True, help="output folder")
     c.add_argument("--json", action="store_true")
     c.set_defaults(func=cmd_cue)

@@ -160,6 +160,7 @@ class DataSet:
     val: np.ndarray                    # (N,) bool: held-out frame
     frames: int = 0
     runs: list = field(default_factory=list)
+    negative_images: int = 0
 
 
 def jitter(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -176,10 +177,11 @@ def jitter(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 def build_dataset(runs: list[str | os.PathLike], domain: str | None = None, every: int = 2,
                   width: int = 640, cell_px: int = 16, neg_per_frame: int = 600,
                   val_fraction: float = 0.2, seed: int = 0, augment: int = 1,
-                  progress=None) -> tuple[DataSet, str]:
+                  negatives=(), progress=None) -> tuple[DataSet, str]:
     """Features and labels of every ``every``-th frame with truth of every run; each training
     frame also gives ``augment`` photometric variants (:func:`jitter`; held-out frames are
-    used as they are)."""
+    used as they are). ``negatives``: photographs of clear ground (image files): every cell
+    of them is a training negative (the field's real appearance, for a new field)."""
     rng = np.random.default_rng(seed)
     readers = []
     for r in runs:
@@ -225,11 +227,33 @@ def build_dataset(runs: list[str | os.PathLike], domain: str | None = None, ever
                 vs.append(np.full(len(take), is_val))
         if progress is not None:
             progress(n + 1, len(jobs))
+    n_neg_images = 0
+    for f in negatives or ():
+        img = cv2.imread(str(f), cv2.IMREAD_COLOR)
+        if img is None:
+            raise CueModelError(f"{f}: not an image OpenCV can read (--negatives takes photos "
+                                "of ground with no obstacle on it)")
+        if domain == "rgbd":
+            raise CueModelError("--negatives is for image-only (stereo) models; an RGB-D "
+                                "model needs depth with every frame (record a run instead)")
+        h, w = img.shape[:2]
+        img = cv2.resize(img, (width, max(cell_px, int(round(h * width / w)))),
+                         interpolation=cv2.INTER_AREA if w > width else cv2.INTER_LINEAR)
+        for variant in range(1 + max(0, augment)):
+            feats = cell_features(img if variant == 0 else jitter(img, rng), cell_px)
+            f2 = feats.reshape(-1, feats.shape[-1])
+            take = rng.choice(len(f2), min(len(f2), neg_per_frame), replace=False)
+            xs.append(f2[take])
+            ys.append(np.zeros(len(take), np.int8))
+            cs.append(np.full(len(take), "", object))
+            vs.append(np.zeros(len(take), bool))
+        n_neg_images += 1
     if not xs:
         raise CueModelError("no frame with images and truth in the runs given")
     ds = DataSet(np.concatenate(xs).astype(np.float32), np.concatenate(ys),
                  np.concatenate(cs), np.concatenate(vs), frames=len(jobs),
                  runs=[str(rd.path) for rd in readers])
+    ds.negative_images = n_neg_images
     if not (ds.y == 1).any():
         raise CueModelError("the runs' truth puts no obstacle on any whole cell: nothing "
                             "obstacle-like to learn")
@@ -323,12 +347,12 @@ def export(model, path: str | os.PathLike, meta: dict) -> Path:
 
 
 def train_cue(runs, out, domain=None, every=2, width=640, cell_px=16, hidden=(32, 16),
-              max_fpr=0.01, seed=0, augment=1, progress=None, log=print) -> dict:
+              max_fpr=0.01, seed=0, augment=1, negatives=(), progress=None, log=print) -> dict:
     """Everything ``fieldguard train-cue`` does; returns the training summary (also stored in
     the model's ``trained_on`` metadata)."""
     t0 = time.monotonic()
     ds, domain = build_dataset(runs, domain, every, width, cell_px, seed=seed, augment=augment,
-                               progress=progress)
+                               negatives=negatives, progress=progress)
     log(f"train-cue: {ds.frames} frames, {len(ds.y)} cells "
         f"({int((ds.y == 1).sum())} obstacle-like), {int(ds.val.sum())} held out")
     model = fit(ds, hidden, seed=seed)
@@ -341,6 +365,7 @@ def train_cue(runs, out, domain=None, every=2, width=640, cell_px=16, hidden=(32
         "runs": [Path(r).name for r in ds.runs], "frames": ds.frames, "every": every,
         "domain": domain, "hidden": list(hidden), "seed": seed, "max_fpr": max_fpr,
         "augment": augment,
+        "negative_images": [Path(f).name for f in negatives or ()],
         "threshold": round(thr, 5),
         "held_out": report(p_val, vy, vc, thr) | {"frames_are": "held-out" if has_val
                                                   else "training (no held-out frames)"},

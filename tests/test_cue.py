@@ -354,15 +354,83 @@ def test_shipped_models_load_and_match_their_domain():
         assert m.info.trained_on["runs"] and 0.5 <= m.info.threshold < 1.0
 
 
-def test_shipped_stereo_cue_is_quiet_on_real_ground_and_vegetation():
-    """Real photographs: scikit-image's grass and gravel (ground textures; the simulator's
-    ground is made from them, so this checks the model kept to them) and the Middlebury Aloe
-    plant and Cones scenes. Measured rates are in docs/learned-cue.md."""
+def test_shipped_stereo_cue_is_quiet_on_real_ground():
+    """Real photographs of ground: scikit-image's grass and gravel. The shipped model took
+    their TOP halves as negatives (`train-cue --negatives`); the BOTTOM halves are held out
+    and must stay quiet. (The simulator's ground is textured from the same photographs: this
+    is a check that the cue keeps to ground it was told about, not proof for a new field;
+    docs/learned-cue.md.) A brick wall, which is an obstacle, lights up."""
     cue = LearnedCue("required", "stereo", model=load_cue_model(None, "stereo"))
+    assert "grass-top.png" in cue.model.info.trained_on["negative_images"]
     rates = {}
-    for name in ("textures/grass.png", "textures/gravel.png"):
-        img = cv2.imread(str(REAL / name), cv2.IMREAD_COLOR)
+    for name in ("grass", "gravel", "brick"):
+        img = cv2.imread(str(REAL / "textures" / f"{name}.png"), cv2.IMREAD_COLOR)
         assert img is not None, name
-        p, _ = cue.scores(img)
+        p, _ = cue.scores(img[img.shape[0] // 2:])
         rates[name] = float((p > cue.threshold).mean())
-    assert max(rates.values()) < 0.02, rates
+    assert rates["grass"] < 0.01 and rates["gravel"] < 0.01, rates
+    assert rates["brick"] > 0.2, rates
+
+
+def test_shipped_stereo_cue_finds_the_lookalikes_on_a_held_out_field():
+    """A frame of the look-alike course on a field seed the model never saw (seed 0; trained
+    on 1 and 2): the khaki person and the stubble-coloured drum are obstacle-like, most of the
+    stubble is not."""
+    from appliance.cue_train import cell_labels
+    from drivers.sim import SimField
+    f = SimField("stubble-lookalike", seed=0, sensors=("stereo",), stereo_scale=0.5)
+    s = f.render(0, 0)                                    # the course 8-40 m ahead
+    img = s.stereo.left
+    cal = s.stereo.calib
+    cue = LearnedCue("required", "stereo", model=load_cue_model(None, "stereo"))
+    p, cell = cue.scores(img)
+    hit = p > cue.threshold
+    lab, owner = cell_labels(s.truth, cal.camera, cal.mount, (img.shape[1], img.shape[0]),
+                             int(round(cell)))
+    for cls in ("khaki-person", "look-alike-drum"):
+        m = owner == cls
+        assert m.sum() >= 4, (cls, int(m.sum()))
+        assert hit[m].mean() > 0.5, (cls, float(hit[m].mean()))
+    assert hit[lab == 0].mean() < 0.05
+# ---- the commands ---------------------------------------------------------------------------------
+def test_train_cue_command_from_a_run_folder(tmp_path, capsys):
+    from appliance.cli import main
+    from drivers.sim.record import write_sim_run
+    run = write_sim_run("stubble-lookalike", 12, tmp_path / "run", seed=3, sensors=("stereo",),
+                        stereo_scale=0.25)
+    out = tmp_path / "m.onnx"
+    rc = main(["train-cue", str(run), "--out", str(out), "--every", "1", "--width", "320",
+               "--hidden", "8", "--json"])
+    cap = capsys.readouterr()
+    assert rc == 0, cap.err
+    summary = json.loads(cap.out)
+    assert "train-cue: frames" in cap.err                       # the progress bar
+    assert summary["frames"] == 12 and summary["domain"] == "stereo"
+    assert summary["export_max_abs_diff"] < 1e-4
+    m = load_cue_model(out, "stereo")
+    assert m.info.image_width_px == 320 and m.info.trained_on["runs"] == ["run"]
+    # and the box runs it on a frame of another size
+    cue = LearnedCue("required", "stereo", model=m)
+    p, cell = cue.scores(np.zeros((256, 400, 3), np.uint8))
+    assert p.shape == (12, 20) and np.isclose(cell, 20.0)      # 400x256 -> 320x205
+    # errors a user can act on
+    assert main(["train-cue", str(tmp_path), "--out", str(out)]) == 2
+    assert "not a run folder" in capsys.readouterr().err
+    assert main(["train-cue", str(run), "--out", str(out), "--max-fpr", "0.9"]) == 2
+    assert "--max-fpr" in capsys.readouterr().err
+
+
+def test_cue_command_on_real_photographs(tmp_path, capsys):
+    from appliance.cli import main
+    rc = main(["cue", str(REAL / "textures" / "grass.png"), str(REAL / "textures" / "brick.png"),
+               "--out", str(tmp_path), "--json"])
+    assert rc == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert [Path(r["image"]).name for r in doc["images"]] == ["grass.png", "brick.png"]
+    p = np.load(tmp_path / "grass.cue.npy")
+    assert p.dtype == np.float32 and p.shape == (40, 40)       # 512 px scaled to 640: 16-px cells
+    assert (tmp_path / "brick.cue.png").exists() and (tmp_path / "cue-summary.json").exists()
+    # an RGB-D model needs depth with every image
+    assert main(["cue", str(REAL / "textures" / "grass.png"), "--domain", "rgbd",
+                 "--out", str(tmp_path)]) == 2
+    assert "give one --depth image per colour image" in capsys.readouterr().err

@@ -140,7 +140,7 @@ class RgbdPipelineConfig:
                                  doc="cue: pixels of a cue group farther than its nearest "
                                      "tenth plus this are dropped (the cells on its outline "
                                      "hold the bush behind it); 0 = keep all")
-    cue_erode_px: int = _f(4, lo=0, hi=32, doc="cue: its pixel mask shrunk by this much (the "
+    cue_erode_px: int = _f(8, lo=0, hi=32, doc="cue: its pixel mask shrunk by this much (the "
                                                "cells on an outline are partly background)")
 
 
