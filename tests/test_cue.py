@@ -434,3 +434,36 @@ def test_cue_command_on_real_photographs(tmp_path, capsys):
     assert main(["cue", str(REAL / "textures" / "grass.png"), "--domain", "rgbd",
                  "--out", str(tmp_path)]) == 2
     assert "give one --depth image per colour image" in capsys.readouterr().err
+
+
+def test_daemon_on_the_lookalike_course_with_the_learned_cue():
+    """Closed loop, stereo-novelty with the learned cue (required) on the look-alike course:
+    the vehicle stops for what is on its path (the khaki person 13 m ahead) without hitting it,
+    and the status page says the cue runs."""
+    import types
+
+    from appliance.config import default_config
+    from appliance.daemon import Daemon, sim_config
+    from appliance.perception.stereo_novelty import StereoNoveltyConfig
+    from hal import GateState
+    cfg = default_config()
+    cfg = dataclasses.replace(cfg, perception=dataclasses.replace(
+        cfg.perception, pipelines=("stereo-novelty",),
+        extra=types.MappingProxyType({"stereo-novelty": StereoNoveltyConfig(cue="required")})))
+    d = Daemon(sim_config(cfg, "stubble-lookalike"), mode="sim", pace=0.0, serve_status=False)
+    d.start()
+    log = []
+    d.loop.on_cycle.append(lambda r: log.append(r))
+    try:
+        d.run(max_cycles=70)           # 7 s: the person is in the stop zone by then
+        st = d.status()
+        notes = d.loop.status()["pipeline_notes"]["stereo-novelty"]
+    finally:
+        d.shutdown()
+    assert notes["cue"] == "on (required)" and notes["cue_runs"] >= 60
+    assert st["sim"]["collisions"] == 0
+    assert any(r.output.state is GateState.STOP and "stop zone" in r.output.reason for r in log)
+    assert all("pipeline" not in r.output.reason for r in log)
+    learned = [r.detections["stereo-novelty"].debug["cue_cells"].get("learned", 0)
+               for r in log if "stereo-novelty" in r.detections]
+    assert max(learned) > 10

@@ -37,3 +37,48 @@ def test_greenhouse_sprayer_stops_for_the_crate_on_its_path():
     assert abs(nearest - clearance) < 0.5, (nearest, clearance)
     assert st["sim"]["distance_m"] < 1.0 and log[-1].output.state is GateState.STOP
     assert all("pipeline" not in r.output.reason for r in log)
+
+
+def _greenhouse_daemon(rgbd_options):
+    cfg = default_config()
+    cfg = dataclasses.replace(
+        cfg, zones=dataclasses.replace(cfg.zones, front_x_m=1.1, half_width_m=0.5),
+        perception=dataclasses.replace(cfg.perception, pipelines=("rgbd",),
+                                       extra=types.MappingProxyType({"rgbd": rgbd_options})))
+    return Daemon(sim_config(cfg, "greenhouse"), mode="sim", pace=0.0, serve_status=False)
+
+
+def test_greenhouse_with_the_learned_cue_required_stops_for_the_crate():
+    d = _greenhouse_daemon(RgbdPipelineConfig(cue="required"))
+    d.start()
+    log = []
+    d.loop.on_cycle.append(lambda r: log.append(r))
+    try:
+        d.run(max_cycles=90)
+        st = d.status()
+        notes = d.loop.status()["pipeline_notes"]["rgbd"]
+    finally:
+        d.shutdown()
+    assert notes["cue"] == "on (required)" and notes["cue_model"].endswith("cue-greenhouse.onnx")
+    assert notes["cue_runs"] > 0
+    assert st["sim"]["collisions"] == 0
+    assert any(r.output.state is GateState.STOP and "stop zone" in r.output.reason for r in log)
+    assert all("pipeline" not in r.output.reason for r in log)
+
+
+def test_greenhouse_with_a_required_cue_whose_model_is_gone_never_drives(tmp_path):
+    d = _greenhouse_daemon(RgbdPipelineConfig(cue="required",
+                                              cue_model=str(tmp_path / "gone.onnx")))
+    d.start()
+    log = []
+    d.loop.on_cycle.append(lambda r: log.append(r))
+    try:
+        d.run(max_cycles=20)
+        st = d.status()
+    finally:
+        d.shutdown()
+    assert all(r.output.state is GateState.STOP for r in log)
+    assert "learned cue required but unavailable" in log[-1].output.reason
+    assert "gone.onnx" in log[-1].output.reason
+    # it starts at cruise speed (0.7 m/s) and brakes on the first STOP: ~0.1 m, never more
+    assert st["sim"]["distance_m"] < 0.3 and st["sim"]["speed_mps"] == 0.0
