@@ -6,10 +6,10 @@ A cue model is an ONNX graph written by ``fieldguard train-cue`` (appliance.cue_
     output  "probabilities"  float32 [N, 2]   column 1 = P(obstacle-like) per cell
     metadata (ONNX metadata_props, all strings):
         fieldguard_cue_version   "1"   (a reader refuses any other)
-        feature_set              "fieldguard-cell-v1" (images; 65 features) or
-                                 "fieldguard-cell-depth-v1" (RGB-D; 71), see
+        feature_set              "fieldguard-cell-v2" (images; 59 features) or
+                                 "fieldguard-cell-depth-v2" (RGB-D; 65), see
                                  appliance.perception.cue_features
-        n_features               "65" / "71"
+        n_features               "59" / "65"
         cell_px                  cell size the features were computed on, at image width
         image_width_px           ... of this many pixels (the cue rescales to it)
         threshold                P above which a cell is obstacle-like (chosen at training)

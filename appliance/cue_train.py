@@ -13,7 +13,7 @@ depth range, so a far obstacle there would be a wrong negative; a cell on the ed
 against the far view is kept: it is the hardest negative there is).
 
 The model: a scikit-learn pipeline (standardisation, a two-layer perceptron) on the cell
-features of appliance.perception.cue_features (65 from the image; RGB-D runs add 6 of the
+features of appliance.perception.cue_features (59 from the image; RGB-D runs add 6 of the
 depth's shape), exported to ONNX with skl2onnx and checked
 against scikit-learn's own output before it is written. The decision threshold is chosen on
 held-out frames (every 5th block of 10 frames of each run) as the lowest that keeps the share of

@@ -10,7 +10,8 @@
 ``runs`` renders the training runs (stubble-day and stubble-lookalike seeds 1 and 2,
 stubble-night seed 1, greenhouse seeds 0, 1, 4, 5, 6) and the test runs (greenhouse seeds 2
 and 3; the stereo Figure 5 runs of seed 0 -- 120 warm-up frames of the empty field, then the
-obstacle course -- for stubble-day, stubble-lookalike and stubble-night, made by
+obstacle course -- for stubble-day, stubble-lookalike, stubble-night and stubble-empty (no
+obstacle at all: every false-positive frame there is a false stop), made by
 tools/experiments_stereo.py). No test run's seed is a training run's seed: the field, its
 light and the obstacles' places differ; the kinds of obstacle are the same.
 
@@ -41,7 +42,7 @@ STEREO_TRAIN = [f"{sc}-{s}" for s in (1, 2) for sc in ("stubble-day", "stubble-l
     ["stubble-night-1"]
 RGBD_TRAIN = [f"greenhouse-{s}" for s in (0, 1, 4, 5, 6)]
 RGBD_TEST = ["greenhouse-2", "greenhouse-3"]
-STEREO_TEST = ["stubble-lookalike", "stubble-day", "stubble-night"]
+STEREO_TEST = ["stubble-lookalike", "stubble-day", "stubble-night", "stubble-empty"]
 CONFIGS = {
     "stereo-paper": '[perception]\npipelines = ["stereo-novelty"]\n'
                     '[perception.stereo-novelty]\ndepth_cue = "off"\n',

@@ -5,25 +5,27 @@ greenhouse paper's Mahalanobis colour classes); an obstacle coloured like the fi
 both. The learned cue scores each image cell from what colour statistics leave out:
 
 - colour, for context: Lab of the cell's mean colour and the B, G, R standard deviations (6);
-- gradient energy: mean |d/dx|, mean |d/dy|, mean gradient magnitude, mean |Laplacian| (4);
-- edge orientation: a 6-bin histogram of unsigned gradient direction, weighted by magnitude,
-  normalised (6) -- ground seen at a grazing angle is foreshortened (horizontal structure), a
-  standing surface is not;
+- gradient energy: RMS of d/dx and d/dy, RMS gradient magnitude, mean |Laplacian| (4);
+- edge orientation, from the cell's structure tensor J = mean [gx^2, gx gy; gx gy, gy^2]:
+  anisotropy (Jxx - Jyy) / tr J, shear 2 Jxy / tr J and coherence
+  ((Jxx - Jyy)^2 + 4 Jxy^2) / tr J^2 (3) -- ground seen at a grazing angle is foreshortened
+  (horizontal structure: strong vertical gradients), a standing surface is not;
 - micro-texture: rotation-invariant uniform LBP (8 neighbours, 10 codes) histogram (10) --
   leaves and stubble against the smooth faces of crates, drums and clothing;
 - layout inside the cell: the grey means of its 2x2 quarters minus the cell mean (4);
 - position: cell centre u, v in [0, 1] (2);
 - context: the cell's colour, gradient, orientation and LBP features minus their median over
-  its image row of cells (at a given row most cells are the ground at one distance) (23);
+  its image row of cells (at a given row most cells are the ground at one distance) (20);
 - neighbourhood: the 3x3 box mean of the colour and gradient features (10).
 
-65 numbers per cell, float32: the feature set ``FEATURE_SET`` (camera images alone, the
+59 numbers per cell, float32: the feature set ``FEATURE_SET`` (camera images alone, the
 stereo pipeline's). With registered depth (RGB-D) the set ``DEPTH_FEATURE_SET`` adds 6
 numbers of shape the image cannot give: the share of valid depth, the mean depth, and the mean
 and spread of the vertical and horizontal depth gradients relative to the depth (a crate's
 face is a smooth plane, a bush's leaves are rough, the ground recedes evenly). A model file
 records the set it was trained on and the loader refuses any other (appliance.cue_model).
-Pure code: arrays in, arrays out.
+Pure code: arrays in, arrays out. (Version 1 of the sets had a 6-bin orientation histogram;
+the structure tensor gives the same kind of information for a third of the cost.)
 """
 from __future__ import annotations
 
@@ -32,27 +34,25 @@ import numpy as np
 
 from .rgbd_texture import lbp_codes
 
-FEATURE_SET = "fieldguard-cell-v1"
+FEATURE_SET = "fieldguard-cell-v2"
 
 _BASE_NAMES = (["L_mean", "a_mean", "b_mean", "B_std", "G_std", "R_std",
-                "gx", "gy", "grad", "laplace"]
-               + [f"orient_{i}" for i in range(6)]
+                "gx", "gy", "grad", "laplace", "anisotropy", "shear", "coherence"]
                + [f"lbp_riu2_{i}" for i in range(10)]
                + [f"quarter_{i}" for i in range(4)]
                + ["u", "v"])
 # indices into the base features: those given row context and neighbourhood means
-_ROW_CONTEXT = tuple(range(0, 3)) + tuple(range(6, 26))          # 3 + 4 + 6 + 10 = 23
+_ROW_CONTEXT = tuple(range(0, 3)) + tuple(range(6, 23))          # 3 + 4 + 3 + 10 = 20
 _NEIGHBOURHOOD = tuple(range(0, 10))                              # colour + gradient: 10
 FEATURE_NAMES = tuple(_BASE_NAMES
                       + [f"row_ctx_{_BASE_NAMES[i]}" for i in _ROW_CONTEXT]
                       + [f"nbhd_{_BASE_NAMES[i]}" for i in _NEIGHBOURHOOD])
 N_FEATURES = len(FEATURE_NAMES)
-DEPTH_FEATURE_SET = "fieldguard-cell-depth-v1"
+DEPTH_FEATURE_SET = "fieldguard-cell-depth-v2"
 DEPTH_FEATURE_NAMES = FEATURE_NAMES + ("depth_valid", "depth_mean", "dz_dv", "dz_du",
                                        "dz_dv_spread", "dz_du_spread")
 FEATURE_SETS = {FEATURE_SET: FEATURE_NAMES, DEPTH_FEATURE_SET: DEPTH_FEATURE_NAMES}
 DEPTH_SCALE_M = 5.0        # depth_mean is depth / this
-ORIENT_BINS = 6
 
 
 def _riu2_table() -> np.ndarray:
@@ -68,7 +68,6 @@ def _riu2_table() -> np.ndarray:
 
 RIU2 = _riu2_table()
 _RIU2_U8 = RIU2.astype(np.uint8)
-_MOD6 = (np.arange(256) % ORIENT_BINS).astype(np.uint8)
 
 _INDEX_CACHE: dict[tuple[int, int, int, int], np.ndarray] = {}
 
@@ -140,6 +139,9 @@ def cell_features(bgr: np.ndarray, cell_px: int, depth_m: np.ndarray | None = No
     if rows < 1 or cols < 1:
         raise ValueError(f"image {img.shape[1]}x{img.shape[0]} is smaller than one "
                          f"{cell_px}-px cell")
+    if depth_m is not None and depth_m.shape[:2] != img.shape[:2]:
+        raise ValueError(f"depth {depth_m.shape[:2]} and image {img.shape[:2]} differ (depth "
+                         "must be registered to the image)")
     c = cell_px
     img = np.ascontiguousarray(img[:rows * c, :cols * c])
     area = (cols, rows)
@@ -149,9 +151,10 @@ def cell_features(bgr: np.ndarray, cell_px: int, depth_m: np.ndarray | None = No
 
     # colour: Lab of the cell's mean colour (converting the cell means, not every pixel: the
     # per-pixel Lab conversion alone would cost more than all the rest), BGR spread
-    bgr = img.astype(np.float32)
-    bgr_m = mean(bgr)
-    spread = np.sqrt(np.maximum(mean(cv2.multiply(bgr, bgr)) - bgr_m * bgr_m, 0.0))
+    bgr_m = mean(img.astype(np.float32))
+    sq = img.astype(np.uint16)
+    sq *= sq                                    # <= 65025: exact in 16 bits, cheap to average
+    spread = np.sqrt(np.maximum(mean(sq).astype(np.float32) - bgr_m * bgr_m, 0.0))
     lab_m = cv2.cvtColor(np.ascontiguousarray(bgr_m * np.float32(1 / 255.0)),
                          cv2.COLOR_BGR2Lab)
     lab_m *= np.array([0.01, 1 / 128.0, 1 / 128.0], np.float32)       # ~[0, 1], [-1, 1]
@@ -160,19 +163,16 @@ def cell_features(bgr: np.ndarray, cell_px: int, depth_m: np.ndarray | None = No
     grey = g8.astype(np.float32) * np.float32(1 / 255.0)
     gx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3)
-    mag, ang = cv2.cartToPolar(gx, gy, angleInDegrees=True)
-    lap = cv2.Laplacian(grey, cv2.CV_32F, ksize=1)
-    grad = np.stack([mean(cv2.absdiff(gx, 0.0)), mean(cv2.absdiff(gy, 0.0)), mean(mag),
-                     mean(cv2.absdiff(lap, 0.0))], axis=-1)
+    jxx = mean(cv2.multiply(gx, gx))
+    jyy = mean(cv2.multiply(gy, gy))
+    jxy = mean(cv2.multiply(gx, gy))
+    lap = mean(cv2.absdiff(cv2.Laplacian(grey, cv2.CV_32F, ksize=1), 0.0))
+    tr = jxx + jyy
+    safe = tr + np.float32(1e-6)
+    grad = np.stack([np.sqrt(jxx), np.sqrt(jyy), np.sqrt(tr), lap,
+                     (jxx - jyy) / safe, 2.0 * jxy / safe,
+                     ((jxx - jyy) ** 2 + 4.0 * jxy * jxy) / (safe * safe)], axis=-1)
     n = rows * cols
-    # unsigned orientation in [0, 180) degrees -> 6 bins, weighted by magnitude, one bincount
-    # (floor(ang / 30) as |ang / 30 - 0.5| rounded, 0..12, then mod 6 by a table: an order
-    # of magnitude cheaper than numpy's integer remainder or masked assignment)
-    obin = cv2.LUT(cv2.convertScaleAbs(ang, alpha=ORIENT_BINS / 180.0, beta=-0.5), _MOD6)
-    orient = np.bincount(_cell_index(rows, cols, c, ORIENT_BINS) + obin.ravel(),
-                         weights=mag.ravel(), minlength=n * ORIENT_BINS)
-    orient = orient.reshape(rows, cols, ORIENT_BINS)
-    orient /= orient.sum(axis=-1, keepdims=True) + 1e-6
     lbp = cv2.LUT(lbp_codes(g8), _RIU2_U8)
     hist = np.bincount(_cell_index(rows, cols, c, 10) + lbp.ravel(), minlength=n * 10)
     hist = hist.reshape(rows, cols, 10) * (1.0 / (c * c))
@@ -182,7 +182,7 @@ def cell_features(bgr: np.ndarray, cell_px: int, depth_m: np.ndarray | None = No
     q = q - gm[:, :, None]
     v, u = np.mgrid[0:rows, 0:cols].astype(np.float32)
     pos = np.stack([(u + 0.5) / cols, (v + 0.5) / rows], axis=-1)
-    base = np.concatenate([lab_m, lab_s, grad, orient, hist, q, pos], axis=-1).astype(np.float32)
+    base = np.concatenate([lab_m, lab_s, grad, hist, q, pos], axis=-1).astype(np.float32)
     ctx_src = base[:, :, _ROW_CONTEXT]
     row_ctx = ctx_src - np.median(ctx_src, axis=1, keepdims=True)
     nb = cv2.blur(np.ascontiguousarray(base[:, :, _NEIGHBOURHOOD]), (3, 3),
@@ -191,8 +191,5 @@ def cell_features(bgr: np.ndarray, cell_px: int, depth_m: np.ndarray | None = No
         nb = nb.reshape(rows, cols, -1)
     parts = [base, row_ctx, nb]
     if depth_m is not None:
-        if depth_m.shape[:2] != np.asarray(bgr).shape[:2]:
-            raise ValueError(f"depth {depth_m.shape[:2]} and image {np.asarray(bgr).shape[:2]} "
-                             "differ (depth must be registered to the image)")
         parts.append(depth_features(depth_m, rows, cols, c))
     return np.ascontiguousarray(np.concatenate(parts, axis=-1), np.float32)
