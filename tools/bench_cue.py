@@ -5,7 +5,8 @@
 
 Renders frames of the simulated field (stereo left image at 1280x1024, the paper's camera) and
 greenhouse (RGB-D colour at 640x480), and times the shipped models' two stages per frame --
-cell features (appliance.perception.cue_features, on the image scaled to the model's width)
+cell features (appliance.perception.cue_features, on the image scaled to the model's width:
+640 px for the stereo model, 320 px for the RGB-D one)
 and onnxruntime inference (one intra-op thread, sequential) -- and the whole ``LearnedCue.mask``
 call the pipelines make. OpenCV and the BLAS are pinned to one thread. Prints p50 / p99 / max
 in CPU time of the calling thread (what the cue itself costs) beside wall time, and the load
@@ -63,10 +64,13 @@ def bench(name: str, imgs, domain: str, repeat: int) -> None:
         for img, depth in imgs:
             h, w = img.shape[:2]
             k = info.image_width_px / float(w)
-            small = img if abs(k - 1) < 1e-6 else cv2.resize(
-                img, (info.image_width_px, int(round(h * k))), interpolation=cv2.INTER_AREA)
+            size = (info.image_width_px, int(round(h * k)))
+            small = img if abs(k - 1) < 1e-6 else cv2.resize(img, size,
+                                                               interpolation=cv2.INTER_AREA)
+            dsmall = None if depth is None or abs(k - 1) < 1e-6 else cv2.resize(
+                depth, size, interpolation=cv2.INTER_NEAREST)
             t0, c0 = time.perf_counter(), time.thread_time()
-            f = cell_features(small, info.cell_px, depth)
+            f = cell_features(small, info.cell_px, dsmall if depth is not None else None)
             t1, c1 = time.perf_counter(), time.thread_time()
             model.score(f.reshape(-1, f.shape[-1]))
             t2, c2 = time.perf_counter(), time.thread_time()

@@ -125,16 +125,17 @@ def _row(label: str, r: dict, classes: list[str]) -> str:
     pc = r["per_class"]
     cells = [f"{pc[c]['detected_obstacle_frames']}/{pc[c]['obstacle_frames']}" if c in pc
              else "-" for c in classes]
-    return (f"| {label} | {r['obstacles_detected']}/{r['obstacles']} | {100 * r['recall']:.1f} % | "
-            + " | ".join(cells) + f" | {r['false_positive_frames']}/{r['frames']} | "
+    rec = "-" if r["recall"] is None else f"{100 * r['recall']:.1f} %"
+    return (f"| {label} | {r['obstacles_detected']}/{r['obstacles']} | {rec} | "
+            + "".join(f"{c} | " for c in cells) + f"{r['false_positive_frames']}/{r['frames']} | "
             f"{r.get('false_positive_frames_clear', '?')} | {r['fp_cells_per_frame']:.2f} |")
 
 
 def _table(title: str, rows: list[tuple[str, dict]]) -> None:
     classes = sorted({c for _, r in rows for c in r["per_class"]})
     print(f"\n### {title}\n")
-    print("| pipeline | obstacles | recall | " + " | ".join(classes) +
-          " | FP frames | FP frames, zone clear | FP cells/frame |")
+    print("| pipeline | obstacles | recall | " + "".join(f"{c} | " for c in classes) +
+          "FP frames | FP frames, zone clear | FP cells/frame |")
     print("|---" * (len(classes) + 6) + "|")
     for label, r in rows:
         print(_row(label, r, classes))
