@@ -186,12 +186,41 @@ def cmd_eval(a) -> int:
     return 0
 
 
+def _check_cue_models(cfg) -> list[str]:
+    """Load every learned-cue model the config asks for (what the daemon will read at start):
+    a required one that fails raises its CueModelError; an optional one gives a warning."""
+    from appliance.config import pipeline_options
+    from appliance.cue_model import CueModelError, load_cue_model
+    domains = {"stereo-novelty": "stereo", "rgbd": "rgbd"}
+    notes = []
+    for name in cfg.perception.pipelines:
+        o = pipeline_options(cfg, name) if name in domains else None
+        mode = getattr(o, "cue", "off")
+        if mode == "off":
+            continue
+        try:
+            m = load_cue_model(o.cue_model or None, domains[name])
+        except CueModelError as exc:
+            if mode == "required":
+                raise CueModelError(f"[perception.{name}] cue = \"required\": {exc} (the box "
+                                    "would hold STOP)") from None
+            notes.append(f"warning: [perception.{name}] optional learned cue unavailable, the "
+                         f"box will run without it: {exc}")
+        else:
+            notes.append(f"[perception.{name}] learned cue ({mode}): {m.path}, "
+                         f"{m.info.feature_set}, threshold {m.info.threshold:.3f}")
+    return notes
+
+
 def cmd_config_check(a) -> int:
     from appliance.config import load_config
     cfg = load_config(a.file)
+    notes = _check_cue_models(cfg)
     print(f"{a.file}: OK ({len(cfg.devices)} devices: "
           f"{', '.join(f'{d.name}={d.type}' for d in cfg.devices) or 'none'}; pipelines: "
           f"{', '.join(cfg.perception.pipelines)})")
+    for n in notes:
+        print(n)
     return 0
 
 

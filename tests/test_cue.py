@@ -474,3 +474,20 @@ def test_daemon_on_the_lookalike_course_with_the_learned_cue():
     learned = [r.detections["stereo-novelty"].debug["cue_cells"].get("learned", 0)
                for r in log if "stereo-novelty" in r.detections]
     assert max(learned) > 10
+
+
+def test_config_check_loads_the_cue_models(tmp_path, capsys):
+    from appliance.cli import main
+    f = tmp_path / "c.toml"
+    f.write_text('[perception]\npipelines = ["rgbd"]\n[perception.rgbd]\ncue = "required"\n')
+    assert main(["config", "check", str(f)]) == 0
+    assert "learned cue (required)" in capsys.readouterr().out
+    f.write_text('[perception]\npipelines = ["rgbd"]\n[perception.rgbd]\ncue = "required"\n'
+                 f'cue_model = "{tmp_path}/nope.onnx"\n')
+    assert main(["config", "check", str(f)]) == 2
+    err = capsys.readouterr().err
+    assert "nope.onnx" in err and "not found" in err and "hold STOP" in err
+    f.write_text('[perception]\npipelines = ["rgbd"]\n[perception.rgbd]\ncue = "optional"\n'
+                 f'cue_model = "{tmp_path}/nope.onnx"\n')
+    assert main(["config", "check", str(f)]) == 0
+    assert "will run without it" in capsys.readouterr().out
