@@ -48,17 +48,21 @@ def _greenhouse_daemon(rgbd_options):
     return Daemon(sim_config(cfg, "greenhouse"), mode="sim", pace=0.0, serve_status=False)
 
 
-def test_greenhouse_with_the_learned_cue_required_stops_for_the_crate():
-    d = _greenhouse_daemon(RgbdPipelineConfig(cue="required"))
+def _run(d, cycles):
+    """(cycle results, daemon status, loop status) of ``cycles`` cycles."""
     d.start()
     log = []
     d.loop.on_cycle.append(lambda r: log.append(r))
     try:
-        d.run(max_cycles=90)
-        st = d.status()
-        notes = d.loop.status()["pipeline_notes"]["rgbd"]
+        d.run(max_cycles=cycles)
+        return log, d.status(), d.loop.status()
     finally:
         d.shutdown()
+
+
+def test_greenhouse_with_the_learned_cue_required_stops_for_the_crate():
+    log, st, loop_st = _run(_greenhouse_daemon(RgbdPipelineConfig(cue="required")), 90)
+    notes = loop_st["pipeline_notes"]["rgbd"]
     assert notes["cue"] == "on (required)" and notes["cue_model"].endswith("cue-greenhouse.onnx")
     assert notes["cue_runs"] > 0
     assert st["sim"]["collisions"] == 0
@@ -67,16 +71,8 @@ def test_greenhouse_with_the_learned_cue_required_stops_for_the_crate():
 
 
 def test_greenhouse_with_a_required_cue_whose_model_is_gone_never_drives(tmp_path):
-    d = _greenhouse_daemon(RgbdPipelineConfig(cue="required",
-                                              cue_model=str(tmp_path / "gone.onnx")))
-    d.start()
-    log = []
-    d.loop.on_cycle.append(lambda r: log.append(r))
-    try:
-        d.run(max_cycles=20)
-        st = d.status()
-    finally:
-        d.shutdown()
+    log, st, _ = _run(_greenhouse_daemon(RgbdPipelineConfig(
+        cue="required", cue_model=str(tmp_path / "gone.onnx"))), 20)
     assert all(r.output.state is GateState.STOP for r in log)
     assert "learned cue required but unavailable" in log[-1].output.reason
     assert "gone.onnx" in log[-1].output.reason

@@ -12,10 +12,12 @@ outside the per-frame code) and turns an image into a per-pixel "obstacle-like" 
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
+from appliance.config import _f
 from hal.errors import FieldguardError
 
 from .cue_features import cell_features
@@ -23,6 +25,25 @@ from .cue_features import cell_features
 log = logging.getLogger("fieldguard.cue")
 
 CUE_MODES = ("off", "optional", "required")
+
+
+@dataclass(frozen=True)
+class CueOptions:
+    """The learned cue's keys, the same in every pipeline table that has a cue
+    (``[perception.stereo-novelty]``, ``[perception.rgbd]``)."""
+
+    cue: str = _f("off", choices=CUE_MODES,
+                  doc="beyond the papers: the learned cue (ONNX, docs/learned-cue.md). "
+                      "required: a missing or broken model is a fault (STOP); optional: the "
+                      "box runs without it and says so in status")
+    cue_model: str = _f("", doc="cue model file from `fieldguard train-cue`; empty = the model "
+                                "shipped for the pipeline (appliance/models/)")
+    cue_threshold: float = _f(0.0, lo=0.0, hi=1.0,
+                              doc="P(obstacle-like) above which a cell counts; 0 = the "
+                                  "threshold stored in the model")
+    cue_threads: int = _f(1, lo=1, hi=8, doc="cue: onnxruntime intra-op threads")
+    cue_open_cells: int = _f(2, lo=0, hi=8, doc="cue: a cell counts only inside a square block "
+                                                "of this many obstacle-like cells (0/1 = any)")
 
 
 class CueUnavailable(FieldguardError):

@@ -36,7 +36,7 @@ import numpy as np
 from appliance.config import _f
 
 from .base import Detections, Pipeline, SensorInputs
-from .cue import LearnedCue
+from .cue import CueOptions, LearnedCue
 from .rgbd_classes import RgbdClassModel
 from .rgbd_colour import COLOUR_SPACES, ColourClassifier, colour_features
 from .rgbd_decision import (NOT_CLASSIFIED, Rule, decide, not_traversable, obstacle_groups,
@@ -46,7 +46,7 @@ from .rgbd_texture import classify_histograms, lbp_codes, to_grey, window_histog
 
 
 @dataclass(frozen=True)
-class RgbdPipelineConfig:
+class RgbdPipelineConfig(CueOptions):
     model: str = _f("", doc="class model file from `fieldguard train-classes`; "
                             "empty = the shipped greenhouse model (package data: "
                             "appliance/models/greenhouse-classes.npz)")
@@ -116,22 +116,6 @@ class RgbdPipelineConfig:
                                                     "traversable ones (the greenhouse cover: "
                                                     "beyond the sensor's range)")
     use_vehicle_pitch: bool = _f(False, doc="add the vehicle's pitch to the mount pitch")
-    cue: str = _f("off", choices=("off", "optional", "required"),
-                  doc="beyond the paper: the learned cue (ONNX, docs/learned-cue.md) stands "
-                      "beside colour and texture in the decision. required: a missing or "
-                      "broken model is a fault (STOP); optional: the box runs without it and "
-                      "says so in status")
-    cue_model: str = _f("", doc="cue model file from `fieldguard train-cue`; empty = the "
-                                "shipped greenhouse model (appliance/models/cue-greenhouse.onnx)")
-    cue_threshold: float = _f(0.0, lo=0.0, hi=1.0,
-                              doc="P(obstacle-like) above which a cell counts; 0 = the "
-                                  "threshold stored in the model")
-    cue_threads: int = _f(1, lo=1, hi=8, doc="cue: onnxruntime intra-op threads")
-    cue_open_cells: int = _f(2, lo=0, hi=8, doc="cue: a cell counts only inside a square block "
-                                                "of this many obstacle-like cells (0/1 = any)")
-    cue_texture_veto: bool = _f(False, doc="cue: a pixel whose texture window is of a "
-                                           "traversable class is not turned into an obstacle "
-                                           "by the cue (texture and cue must not disagree)")
     cue_min_depth_valid: float = _f(0.5, lo=0.0, hi=1.0,
                                     doc="cue: a cell with less valid depth than this share "
                                         "is not used (a shiny object's cells hold only the "
@@ -286,8 +270,6 @@ class RgbdPipeline(Pipeline):
         tmap = None
         if o.texture == "always":
             tmap = self._texture_map(color, sus)
-            if learned is not None and o.cue_texture_veto:
-                learned = learned & ~self._traversable_texture(tmap)
             d = decide(sus, surface, cmap, tmap, self.rule, height, raised, learned)
         else:
             d = decide(sus, surface, cmap, None, self.rule, height, raised, learned)
@@ -355,9 +337,6 @@ class RgbdPipeline(Pipeline):
         out = np.zeros_like(mask)
         out[mask] = keep
         return out
-
-    def _traversable_texture(self, tmap: np.ndarray) -> np.ndarray:
-        return ~not_traversable(tmap, list(self.traversable_idx)) & (tmap >= 0)
 
     # ------------------------------------------------------------------------------------------
     def _texture_map(self, color: np.ndarray, sus: np.ndarray) -> np.ndarray:

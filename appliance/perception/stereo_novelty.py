@@ -20,7 +20,7 @@ import numpy as np
 from appliance.config import _f
 
 from .base import Detections, Pipeline, SensorInputs
-from .cue import LearnedCue
+from .cue import CueOptions, LearnedCue
 from .novelty import NoveltyDetector, dilate_cells, mask_to_camera, obstacle_cells
 from .stereo import (StereoConfig, StereoPipeline, dedupe_cells, disparity_regions, downscale,
                      height_band, make_matcher, mask_boxes, match_factor,
@@ -33,7 +33,7 @@ DEFAULT_SCALE = (1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0)
 
 
 @dataclass(frozen=True)
-class StereoNoveltyConfig(StereoConfig):
+class StereoNoveltyConfig(StereoConfig, CueOptions):
     cell_px: int = _f(0, lo=0, hi=256, doc="cell size in px; 0 = image width / 40 (the paper's "
                                          "32 px, 40x32 cells at 1280x1024; 16 px at 640x512)")
     descriptor_scale: tuple = _f(DEFAULT_SCALE, doc="s of eq. 5: 8 factors for "
@@ -97,21 +97,7 @@ class StereoNoveltyConfig(StereoConfig):
                                          "than the ground at the region's last row, or than "
                                          "the nearest coarse depth seen in it (without the "
                                          "coarse pass this check is off: full near range)")
-    cue: str = _f("off", choices=("off", "optional", "required"),
-                  doc="beyond the papers: the learned cue (ONNX, docs/learned-cue.md); a cell it "
-                      "calls obstacle-like is matched densely too, novel or not. required: a "
-                      "missing or broken model is a fault (STOP); optional: the box runs "
-                      "without it and says so in status")
-    cue_model: str = _f("", doc="cue model file from `fieldguard train-cue`; empty = the "
-                                "shipped stubble model (appliance/models/cue-stubble.onnx)")
-    cue_threshold: float = _f(0.0, lo=0.0, hi=1.0,
-                              doc="P(obstacle-like) above which a cell is matched; 0 = the "
-                                  "threshold stored in the model")
-    cue_open_cells: int = _f(2, lo=0, hi=8, doc="cue: a cell counts only inside a square "
-                                                "block of this many obstacle-like cells "
-                                                "(0/1 = any)")
     cue_dilate_cells: int = _f(0, lo=0, hi=10, doc="cue: dilation of its cells")
-    cue_threads: int = _f(1, lo=1, hi=8, doc="cue: onnxruntime intra-op threads")
     near_margin: float = _f(1.15, lo=1.0, hi=4.0,
                             doc="near_from_foot: the coarse disparity seen is scaled by this "
                                 "(coarse depth is rough) before it bounds the search")
