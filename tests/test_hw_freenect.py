@@ -299,7 +299,9 @@ def test_stream_check_reports_figures(tmp_path, stub):
     """`python -m drivers.freenect_rgbd --stream` (the technician's check, and the figures in
     docs/hardware.md) on a 30 fps dump: throttled to 15 pairs/s, every pair timed."""
     from drivers.freenect_rgbd import stream_check
-    ramp_dump(tmp_path / "dump", frames=30, fps=30.0)
+    # 2.5 s of dump for a 1.2 s check: the selftest at the end must find it still streaming
+    # (a 1 s dump could end before the check did when the helper starts fast)
+    ramp_dump(tmp_path / "dump", frames=75, fps=30.0)
     r = stream_check(1.2, fakenect=str(tmp_path / "dump"), fakenect_preload=str(stub))
     assert r["pairs"] >= 5 and r["counters"]["throttled"] >= 5
     assert r["pairs_per_s"] <= 15.5
