@@ -351,6 +351,7 @@ def train_cue(runs, out, domain=None, every=2, width=640, cell_px=16, hidden=(32
     """Everything ``fieldguard train-cue`` does; returns the training summary (also stored in
     the model's ``trained_on`` metadata)."""
     t0 = time.monotonic()
+    _sklearn()                        # the train extra is there before any frame is read
     ds, domain = build_dataset(runs, domain, every, width, cell_px, seed=seed, augment=augment,
                                negatives=negatives, progress=progress)
     log(f"train-cue: {ds.frames} frames, {len(ds.y)} cells "
