@@ -191,15 +191,16 @@ def _check_cue_models(cfg) -> list[str]:
     a required one that fails raises its CueModelError; an optional one gives a warning."""
     from appliance.config import pipeline_options
     from appliance.cue_model import CueModelError, load_cue_model
-    domains = {"stereo-novelty": "stereo", "rgbd": "rgbd"}
+    from appliance.perception import pipeline_class
     notes = []
     for name in cfg.perception.pipelines:
-        o = pipeline_options(cfg, name) if name in domains else None
+        domain = None if name == "fused" else getattr(pipeline_class(name), "cue_domain", None)
+        o = pipeline_options(cfg, name) if domain else None
         mode = getattr(o, "cue", "off")
         if mode == "off":
             continue
         try:
-            m = load_cue_model(o.cue_model or None, domains[name])
+            m = load_cue_model(o.cue_model or None, domain)
         except CueModelError as exc:
             if mode == "required":
                 raise CueModelError(f"[perception.{name}] cue = \"required\": {exc} (the box "

@@ -34,7 +34,7 @@ import numpy as np
 
 from appliance.cue_model import INPUT_NAME, OUTPUT_NAME, VERSION, CueModel, CueModelError
 from appliance.perception.cue_features import (DEPTH_FEATURE_SET, FEATURE_SET, FEATURE_SETS,
-                                               cell_features, grid_shape)
+                                               cell_features, grid_shape, scale_to_width)
 from drivers.runfolder import RunReader
 from hal.types import Mount, PinholeCalibration
 
@@ -143,12 +143,7 @@ def frame_image(reader: RunReader, i: int, domain: str, width: int):
             return None
         img, depth, cal = fr.color, fr.depth_m, fr.calib
         rng = (cal.min_range_m, cal.max_range_m)
-    h, w = img.shape[:2]
-    if w != width:
-        size = (width, int(round(h * width / w)))
-        img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
-        if depth is not None:
-            depth = cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST)
+    img, depth = scale_to_width(img, width, depth_m=depth)
     return img, depth, cal.camera, cal.mount, rng
 
 
@@ -236,9 +231,7 @@ def build_dataset(runs: list[str | os.PathLike], domain: str | None = None, ever
         if domain == "rgbd":
             raise CueModelError("--negatives is for image-only (stereo) models; an RGB-D "
                                 "model needs depth with every frame (record a run instead)")
-        h, w = img.shape[:2]
-        img = cv2.resize(img, (width, max(cell_px, int(round(h * width / w)))),
-                         interpolation=cv2.INTER_AREA if w > width else cv2.INTER_LINEAR)
+        img, _ = scale_to_width(img, width, cell_px)
         for variant in range(1 + max(0, augment)):
             feats = cell_features(img if variant == 0 else jitter(img, rng), cell_px)
             f2 = feats.reshape(-1, feats.shape[-1])

@@ -32,7 +32,7 @@ sys.path.insert(0, str(ROOT))
 
 from appliance.cue_model import load_cue_model  # noqa: E402
 from appliance.perception.cue import LearnedCue  # noqa: E402
-from appliance.perception.cue_features import cell_features  # noqa: E402
+from appliance.perception.cue_features import cell_features, scale_to_width  # noqa: E402
 
 
 def frames(scene: str, n: int, scale: float):
@@ -63,14 +63,9 @@ def bench(name: str, imgs, domain: str, repeat: int) -> None:
     for _ in range(repeat):
         for img, depth in imgs:
             h, w = img.shape[:2]
-            k = info.image_width_px / float(w)
-            size = (info.image_width_px, int(round(h * k)))
-            small = img if abs(k - 1) < 1e-6 else cv2.resize(img, size,
-                                                               interpolation=cv2.INTER_AREA)
-            dsmall = None if depth is None or abs(k - 1) < 1e-6 else cv2.resize(
-                depth, size, interpolation=cv2.INTER_NEAREST)
+            small, dsmall = scale_to_width(img, info.image_width_px, info.cell_px, depth)
             t0, c0 = time.perf_counter(), time.thread_time()
-            f = cell_features(small, info.cell_px, dsmall if depth is not None else None)
+            f = cell_features(small, info.cell_px, dsmall)
             t1, c1 = time.perf_counter(), time.thread_time()
             model.score(f.reshape(-1, f.shape[-1]))
             t2, c2 = time.perf_counter(), time.thread_time()

@@ -20,7 +20,7 @@ import numpy as np
 from appliance.config import _f
 from hal.errors import FieldguardError
 
-from .cue_features import cell_features
+from .cue_features import cell_features, scale_to_width
 
 log = logging.getLogger("fieldguard.cue")
 
@@ -103,18 +103,13 @@ class LearnedCue:
             self.check()
             return None
         info = self.model.info
-        h, w = bgr.shape[:2]
-        k = info.image_width_px / float(w)
-        size = (info.image_width_px, max(info.cell_px, int(round(h * k))))
-        img = bgr if abs(k - 1.0) < 1e-6 else cv2.resize(
-            bgr, size, interpolation=cv2.INTER_AREA if k < 1 else cv2.INTER_LINEAR)
-        depth = None
-        if getattr(self.model, "uses_depth", False):
-            if depth_m is None:
-                raise CueUnavailable(f"cue model {self.model.path} needs registered depth "
-                                     "(an RGB-D model), and none was given")
-            depth = depth_m if abs(k - 1.0) < 1e-6 else cv2.resize(
-                depth_m, size, interpolation=cv2.INTER_NEAREST)
+        k = info.image_width_px / float(bgr.shape[1])
+        uses_depth = getattr(self.model, "uses_depth", False)
+        if uses_depth and depth_m is None:
+            raise CueUnavailable(f"cue model {self.model.path} needs registered depth "
+                                 "(an RGB-D model), and none was given")
+        img, depth = scale_to_width(bgr, info.image_width_px, info.cell_px,
+                                    depth_m if uses_depth else None)
         try:
             feats = cell_features(img, info.cell_px, depth)
             p = self.model.score(feats.reshape(-1, feats.shape[-1])).reshape(feats.shape[:2])

@@ -84,6 +84,21 @@ def _cell_index(rows: int, cols: int, cell: int, bins: int = 1) -> np.ndarray:
     return idx
 
 
+def scale_to_width(img: np.ndarray, width: int, min_height: int = 1,
+                   depth_m: np.ndarray | None = None):
+    """(image, depth) scaled to ``width`` px wide, keeping the aspect (at least ``min_height``
+    rows): area-averaged when shrinking, bilinear when enlarging, depth by nearest neighbour
+    (no mixed depths at edges). The one place training and the box resize an image for the
+    cue, so both see the same pixels."""
+    h, w = img.shape[:2]
+    if w == width:
+        return img, depth_m
+    size = (int(width), max(int(min_height), int(round(h * width / float(w)))))
+    out = cv2.resize(img, size, interpolation=cv2.INTER_AREA if w > width else cv2.INTER_LINEAR)
+    d = None if depth_m is None else cv2.resize(depth_m, size, interpolation=cv2.INTER_NEAREST)
+    return out, d
+
+
 def grid_shape(image_shape: tuple[int, ...], cell_px: int) -> tuple[int, int]:
     """(rows, cols) of whole cells; a partial cell at the right or bottom edge is left out."""
     return int(image_shape[0]) // cell_px, int(image_shape[1]) // cell_px

@@ -169,12 +169,13 @@ class RgbdPipeline(Pipeline):
     name = "rgbd"
     requires = ("rgbd",)
     config_class = RgbdPipelineConfig
+    cue_domain = "rgbd"                # the learned cue models this pipeline takes
 
     def __init__(self, options: RgbdPipelineConfig | None = None,
                  model: RgbdClassModel | None = None, cue_model=None):
         super().__init__(options)
         o: RgbdPipelineConfig = self.options
-        self.cue = LearnedCue(o.cue, "rgbd", o.cue_model, o.cue_threshold, o.cue_threads,
+        self.cue = LearnedCue(o.cue, self.cue_domain, o.cue_model, o.cue_threshold, o.cue_threads,
                               model=cue_model)
         if o.max_range_m <= o.min_range_m:
             raise ValueError("perception.rgbd: max_range_m must exceed min_range_m")

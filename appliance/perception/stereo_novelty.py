@@ -107,11 +107,12 @@ class StereoNoveltyPipeline(Pipeline):
     name = "stereo-novelty"
     requires = ("stereo",)
     config_class = StereoNoveltyConfig
+    cue_domain = "stereo"              # the learned cue models this pipeline takes
 
     def __init__(self, options=None, background: bool = True, cue_model=None):
         super().__init__(options)
         o = self.options
-        self.cue = LearnedCue(o.cue, "stereo", o.cue_model, o.cue_threshold, o.cue_threads,
+        self.cue = LearnedCue(o.cue, self.cue_domain, o.cue_model, o.cue_threshold, o.cue_threads,
                               model=cue_model)
         self.novelty = NoveltyDetector(self.options, background=background)
         self._stereo = StereoPipeline(self.options)
