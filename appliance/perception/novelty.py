@@ -254,8 +254,10 @@ def stabilised_descriptors(bgr: np.ndarray, cell_px: int, A: np.ndarray | None):
     lab = lab_planes(bgr, reuse=True)
     f = lab[:rows * cell_px, :cols * cell_px]
     c = np.asarray(cv2.mean(f)[:3], np.float32)
-    np.subtract(f, c, out=f)                         # in the scratch buffer: no new array
-    sq = np.multiply(f, f, out=_buffer("lab2", f.shape))
+    # in the scratch buffers, through OpenCV: numpy broadcasting the 3-vector over the last
+    # axis runs an inner loop of length 3 (measured 2 ms of the 6 ms stage at 640x512)
+    cv2.subtract(f, (float(c[0]), float(c[1]), float(c[2]), 0.0), dst=f)
+    sq = cv2.multiply(f, f, dst=_buffer("lab2", f.shape))
     sw, sh = cols * cell_px // pool, rows * cell_px // pool
     m1 = cv2.resize(f, (sw, sh), interpolation=cv2.INTER_AREA)
     m2 = cv2.resize(sq, (sw, sh), interpolation=cv2.INTER_AREA)
