@@ -347,3 +347,27 @@ def test_cells_to_match_is_novel_or_any_extra_cue():
         assert only.sum() == 16 * 16 * 255
     finally:
         nov.close()
+
+
+@pytest.mark.parametrize("f,k", [(1, 1), (2, 2), (2, 1), (1, 2), (2, 4), (4, 2)])
+def test_masks_made_at_a_lower_resolution_equal_the_full_resolution_round_trip(f, k):
+    """The pipeline makes the matching mask and the boxes' coarse mask from the mask at the
+    descriptor resolution (1/f); they must equal what the full-resolution round trip gave
+    (nearest up to the camera's size, then area down and > 0)."""
+    from appliance.perception.stereo_novelty import coarse_mask, rescale_mask
+    rng = np.random.default_rng(f * 10 + k)
+    H, W = 1024, 1280
+    cells = rng.random((H // f // 16 + 1, W // f // 16 + 1)) < 0.2
+    m = cv2.resize(cells.astype(np.uint8) * 255, (cells.shape[1] * 16, cells.shape[0] * 16),
+                   interpolation=cv2.INTER_NEAREST)[:H // f, :W // f]
+    m[rng.random(m.shape) < 0.001] = 255                    # isolated pixels too
+    full = np.zeros((H, W), np.uint8)
+    full[:H // f * f, :W // f * f] = cv2.resize(m, (W // f * f, H // f * f),
+                                                interpolation=cv2.INTER_NEAREST)
+    want_sel = downscale(full, k) > 0 if k > 1 else full > 0
+    got_sel = rescale_mask(m, f, k, (H // k, W // k)) > 0
+    assert np.array_equal(got_sel, want_sel)
+    g = 8
+    want_small = cv2.resize(full[:H // g * g, :W // g * g], (W // g, H // g),
+                            interpolation=cv2.INTER_AREA) > 0
+    assert np.array_equal(coarse_mask(m, f, g, (H // g, W // g)), want_small)

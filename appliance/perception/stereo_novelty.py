@@ -103,6 +103,45 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
                                 "(coarse depth is rough) before it bounds the search")
 
 
+def rescale_mask(mask: np.ndarray, f: int, k: int, out_hw: tuple[int, int]) -> np.ndarray:
+    """A uint8 mask made at 1/``f`` of the camera's resolution, at 1/``k`` (``f``, ``k`` powers
+    of two) and of size ``out_hw``: nearest-neighbour up, or 'any pixel set' down (what
+    area-averaging a nearest-upsampled full-resolution mask and testing > 0 gives)."""
+    h, w = out_hw
+    if k == f:
+        out = mask
+    elif k < f:
+        r = f // k
+        out = np.repeat(np.repeat(mask, r, axis=0), r, axis=1)
+    else:
+        r = k // f
+        mh, mw = mask.shape[0] // r * r, mask.shape[1] // r * r
+        out = (cv2.resize(mask[:mh, :mw], (mw // r, mh // r), interpolation=cv2.INTER_AREA)
+               > 0).astype(np.uint8) * 255
+    if out.shape[:2] == (h, w):
+        return out
+    full = np.zeros((h, w), np.uint8)
+    hh, ww = min(h, out.shape[0]), min(w, out.shape[1])
+    full[:hh, :ww] = out[:hh, :ww]
+    return full
+
+
+def coarse_mask(mask: np.ndarray, f: int, g: int, out_hw: tuple[int, int]) -> np.ndarray:
+    """Boolean (h, w) = ``out_hw`` mask at 1/``g`` of the camera's resolution: a coarse pixel
+    is set when any camera pixel under it is set in ``mask`` (made at 1/``f``)."""
+    h, w = out_hw
+    if g % f:                                       # not a whole number of mask pixels
+        return rescale_mask(rescale_mask(mask, f, 1, (mask.shape[0] * f, mask.shape[1] * f)),
+                            1, g, out_hw) > 0
+    r = g // f
+    sub = np.zeros((h * r, w * r), np.uint8)
+    hh, ww = min(h * r, mask.shape[0]), min(w * r, mask.shape[1])
+    sub[:hh, :ww] = mask[:hh, :ww]
+    if r == 1:
+        return sub > 0
+    return cv2.resize(sub, (w, h), interpolation=cv2.INTER_AREA) > 0
+
+
 class StereoNoveltyPipeline(Pipeline):
     name = "stereo-novelty"
     requires = ("stereo",)
@@ -116,7 +155,7 @@ class StereoNoveltyPipeline(Pipeline):
                               model=cue_model)
         self.novelty = NoveltyDetector(self.options, background=background)
         self._stereo = StereoPipeline(self.options)
-        self.last = None                       # (NoveltyResult, camera mask) for tools/tests
+        self.last = None                       # (NoveltyResult, camera mask, exclude) for tools
         self._cue_matcher, self._cue_key = None, None
         self._pyramid: dict = {}
         self._coarse = None                    # (disparity, factor) of this frame's depth cue
@@ -154,6 +193,19 @@ class StereoNoveltyPipeline(Pipeline):
             cache[k] = (downscale(up[0], 2), downscale(up[1], 2))
         return cache[k]
 
+    def _pair_for(self, fr, k: int, matcher):
+        """:meth:`_pair` as ``matcher`` takes it: grey (converted once per frame and level)
+        when the matcher matches grey."""
+        if not matcher.grey_input:
+            return self._pair(fr, k)
+        cache = self._pyramid
+        key = ("grey", k)
+        if cache.get("frame") is not fr or key not in cache:
+            left, right = self._pair(fr, k)
+            cache[key] = tuple(x if x.ndim == 2 else cv2.cvtColor(x, cv2.COLOR_BGR2GRAY)
+                               for x in (left, right))
+        return cache[key]
+
     def _extra_cues(self, fr, vehicle, res, kd: int) -> dict:
         """Cues beyond novelty (none in the paper), each a camera-frame cell mask on the
         novelty grid (``res.cell_px`` cells of the image at 1/``kd``)."""
@@ -180,7 +232,6 @@ class StereoNoveltyPipeline(Pipeline):
         H, W = fr.left.shape[:2]
         kc = match_factor(W, o.depth_cue_width_px)
         calib = scaled_calibration(fr.calib, kc)
-        left, right = self._pair(fr, kc)
         key = (o.depth_cue, calib.camera.fx, calib.baseline_m)
         if self._cue_key != key:
             self._cue_matcher = make_matcher(replace(o, matcher=o.depth_cue,
@@ -188,6 +239,7 @@ class StereoNoveltyPipeline(Pipeline):
                                                      speckle_window=o.depth_cue_speckle_px),
                                              calib.camera.fx, calib.baseline_m)
             self._cue_key = key
+        left, right = self._pair_for(fr, kc, self._cue_matcher)
         h, w = left.shape[:2]
         disp, _ = disparity_regions(self._cue_matcher, left, right, [(0, 0, w, h)])
         self._coarse = (disp, kc)
@@ -215,21 +267,22 @@ class StereoNoveltyPipeline(Pipeline):
         sub = disp[int(y0 // f):int(math.ceil(y1 / f)), int(x0 // f):int(math.ceil(x1 / f))]
         return float(sub.max()) * f * self.options.near_margin if sub.size else 0.0
 
-    def _boxes(self, cam_mask: np.ndarray, k: int, calib_k, nd: int, vehicle):
-        """Boxes (at matching resolution, 1/k) covering the mask and their search ranges.
+    def _boxes(self, cam_mask: np.ndarray, f: int, full_hw: tuple[int, int], k: int, calib_k,
+               nd: int, vehicle):
+        """Boxes (at matching resolution, 1/k) covering the mask (at 1/``f`` of the camera's
+        ``full_hw``) and their search ranges.
 
-        Regions are found on an 8x smaller mask (boxes grow by up to 8 px): cheaper than
-        labelling the full-resolution mask. With ``ground_range`` each region's box is cut into
+        Regions are found on a mask 8x smaller than the camera's image (boxes grow by up to
+        8 px): cheaper than labelling the full-resolution mask. With ``ground_range`` each region's box is cut into
         column bands of ``band_cols``, each trimmed to the rows its mask occupies; the foot of a
         band (for ``near_from_foot``) is the lowest masked row of it and its two neighbours in
         the same region (an overhang up to one band wide is still searched from its foot), and
         each band is cut into strips of ``strip_rows`` with their own range
         (:func:`strip_boxes`)."""
         o: StereoNoveltyConfig = self.options
-        H, W = cam_mask.shape
+        H, W = full_hw
         g = 8
-        small = cv2.resize(cam_mask[:H // g * g, :W // g * g], (W // g, H // g),
-                           interpolation=cv2.INTER_AREA) > 0
+        small = coarse_mask(cam_mask, f, g, (H // g, W // g))
         h, w = H // k, W // k
         sc = lambda v, hi: min(hi, v * g // k)                       # noqa: E731
         scu = lambda v, hi, full: hi if v * g >= full else min(hi, -(-v * g // k))  # noqa: E731
@@ -283,18 +336,16 @@ class StereoNoveltyPipeline(Pipeline):
         t1, c1 = time.perf_counter(), time.thread_time()
         extra = self._extra_cues(fr, inputs.vehicle, res, kd)
         t1c, c1c = time.perf_counter(), time.thread_time()
+        # the mask of what is matched, at the descriptor resolution (1/kd); the matching
+        # resolution's mask and the boxes' coarse mask are made from it, never from an image of
+        # the camera's full size (that round trip cost ~2 ms a frame at 1280x1024)
         cam_mask = self._cells_to_match(res, (W // kd, H // kd), extra)
-        if kd > 1:                                  # back to the camera's full resolution
-            full = np.zeros((H, W), np.uint8)
-            full[:H // kd * kd, :W // kd * kd] = cv2.resize(
-                cam_mask, (W // kd * kd, H // kd * kd), interpolation=cv2.INTER_NEAREST)
-            cam_mask = full
         k = match_factor(W, o.match_width_px)
         calib = scaled_calibration(fr.calib, k)
-        left, right = self._pair(fr, k)
-        sel = downscale(cam_mask, k) if k > 1 else cam_mask
         matcher = self._stereo.matcher_for(calib)
-        boxes, ranges = self._boxes(cam_mask, k, calib, matcher.nd, inputs.vehicle)
+        left, right = self._pair_for(fr, k, matcher)
+        sel = rescale_mask(cam_mask, kd, k, left.shape[:2])
+        boxes, ranges = self._boxes(cam_mask, kd, (H, W), k, calib, matcher.nd, inputs.vehicle)
         disp, work = disparity_regions(matcher, left, right, boxes, ranges)
         t2, c2 = time.perf_counter(), time.thread_time()
         pts, px = points_from_disparity(disp, calib, sel, max(1, o.point_stride // k),
@@ -307,7 +358,7 @@ class StereoNoveltyPipeline(Pipeline):
                                  o.obstacle_margin_px / kd)
         self.novelty.learn(res, exclude)
         t4, c4 = time.perf_counter(), time.thread_time()
-        self.last = (res, cam_mask, exclude)
+        self.last = (res, cam_mask, exclude)     # cam_mask at the descriptor resolution
         self._pyramid.clear()
         self._coarse = None
         rows, cols = res.mask.shape
