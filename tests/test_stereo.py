@@ -168,6 +168,20 @@ def test_dedupe_keeps_the_first_point_of_each_cell():
     np.testing.assert_array_equal(out, xy[[0, 2, 3]])
 
 
+@pytest.mark.parametrize("span_m", [20.0, 200.0])      # 16-bit cell keys, and wider ones
+def test_dedupe_equals_a_first_occurrence_reference(span_m):
+    rng = np.random.default_rng(3)
+    xy = (rng.random((20000, 2)) * [30.0, span_m] - [0.0, span_m / 2]).astype(np.float32)
+    xy = np.concatenate([xy, xy[:5000] + 0.001])          # many repeats of a cell
+    cells = np.floor(xy.astype(np.float64) / 0.1).astype(np.int64)
+    seen, want = set(), []
+    for i, c in enumerate(map(tuple, cells)):
+        if c not in seen:
+            seen.add(c)
+            want.append(i)
+    np.testing.assert_array_equal(dedupe_cells(xy), xy[want])
+
+
 def test_boxes_from_a_mask_are_merged_and_grown():
     m = np.zeros((100, 200), np.uint8)
     m[10:20, 10:20] = 255

