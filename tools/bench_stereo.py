@@ -2,7 +2,7 @@
 full-frame stereo with the same matcher, measured in the same run.
 
     python tools/bench_stereo.py [--scale 1.0] [--matcher sgbm] [--learn 6] [--frames 4] [--reps 8]
-                                 [--scene stubble-day] [--set key=value ...]
+                                 [--scene stubble-day] [--set key=value ...] [--interleave]
 
 Frames come from the simulated field (stubble-empty to learn, then frames of --scene with the
 obstacle course in view). OpenCV runs on one thread. Prints p50/p99/max per stage (wall), the
@@ -54,6 +54,10 @@ def main(argv=None):
     ap.add_argument("--start", type=int, default=20, help="first course frame")
     ap.add_argument("--reps", type=int, default=8)
     ap.add_argument("--scene", default="stubble-day")
+    ap.add_argument("--per-frame", action="store_true", help="print every frame's CPU time")
+    ap.add_argument("--interleave", action="store_true",
+                    help="time the pipeline and the two full-frame matchers on each frame in "
+                         "turn instead of in three passes")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="stereo-novelty option (value parsed as JSON, else a string)")
     a = ap.parse_args(argv)
@@ -80,8 +84,12 @@ def main(argv=None):
     print("stereo-novelty options:", {k: getattr(cfg, k) for k in sorted(opts)},
           f"match_width_px={cfg.match_width_px}")
     nov = StereoNoveltyPipeline(cfg)
-    full = StereoPipeline(StereoConfig(matcher=a.matcher))
-    full_k = StereoPipeline(StereoConfig(matcher=a.matcher, match_width_px=cfg.match_width_px))
+    # the same matcher settings as the pipeline's (block, colour ...), over the whole frame
+    from dataclasses import fields
+    same = {f.name: getattr(cfg, f.name) for f in fields(StereoConfig)
+            if f.name != "match_width_px"}
+    full = StereoPipeline(StereoConfig(**same))
+    full_k = StereoPipeline(StereoConfig(**same, match_width_px=cfg.match_width_px))
     inp = lambda s: SensorInputs(s.stereo.stamp_ns, stereo=s.stereo, vehicle=s.vehicle)  # noqa
     for s in learn:
         nov.process(inp(s))
@@ -91,22 +99,28 @@ def main(argv=None):
     whole, cpu, whole_full, cpu_full, whole_k, cpu_k, novel, px, cues = ([] for _ in range(9))
     load0 = os.getloadavg()
     try:
-        for _ in range(a.reps):
-            for s in course:
-                for pipe, wl, cl in ((nov, whole, cpu), (full, whole_full, cpu_full),
-                                     (full_k, whole_k, cpu_k)):
-                    t, c = time.perf_counter(), time.thread_time()
-                    d = pipe.process(inp(s))
-                    cl.append(1e3 * (time.thread_time() - c))
-                    wl.append(1e3 * (time.perf_counter() - t))
-                    if pipe is nov:
-                        for k, v in d.debug["ms"].items():
-                            stages.setdefault(k, []).append(v)
-                        for k, v in d.debug["cpu_ms"].items():
-                            stages_cpu.setdefault(k, []).append(v)
-                        novel.append(d.debug["novel_fraction"])
-                        px.append(d.debug["stereo_px_fraction"])
-                        cues.append(sum(d.debug.get("cue_cells", {}).values()))
+        runs = ((nov, whole, cpu), (full, whole_full, cpu_full), (full_k, whole_k, cpu_k))
+        # default: each pipeline in its own pass over the frames (as in the daemon, where
+        # nothing else touches the caches between frames); --interleave runs the three on
+        # each frame in turn (full-frame SGBM's 300+ MB buffers then evict the pipeline's
+        # working set every frame: a pessimistic figure)
+        passes = [runs] if a.interleave else [(r,) for r in runs]
+        for group in passes:
+            for _ in range(a.reps):
+                for s in course:
+                    for pipe, wl, cl in group:
+                        t, c = time.perf_counter(), time.thread_time()
+                        d = pipe.process(inp(s))
+                        cl.append(1e3 * (time.thread_time() - c))
+                        wl.append(1e3 * (time.perf_counter() - t))
+                        if pipe is nov:
+                            for k, v in d.debug["ms"].items():
+                                stages.setdefault(k, []).append(v)
+                            for k, v in d.debug["cpu_ms"].items():
+                                stages_cpu.setdefault(k, []).append(v)
+                            novel.append(d.debug["novel_fraction"])
+                            px.append(d.debug["stereo_px_fraction"])
+                            cues.append(sum(d.debug.get("cue_cells", {}).values()))
                 nov.novelty.wait_idle(60)     # keep a model update out of the timed calls
     finally:
         nov.close()
@@ -118,6 +132,9 @@ def main(argv=None):
     print(f"load average (1 min) {load0[0]:.2f} before, {load1[0]:.2f} after, on "
           f"{os.cpu_count()} cores: wall times are inflated by other processes, CPU times less")
     print(f"{len(whole)} timed frames, ms:")
+    if a.per_frame:
+        print("  stereo-novelty CPU per frame (rep x frame):",
+              " ".join(f"{v:.1f}" for v in cpu))
     for k_, v in stages.items():
         print(f"  stage {k_:<10} wall {pct(v)}")
         print(f"  stage {k_:<10} CPU  {pct(stages_cpu[k_])}")

@@ -23,7 +23,7 @@ from .base import Detections, Pipeline, SensorInputs
 from .cue import CueOptions, LearnedCue
 from .novelty import NoveltyDetector, dilate_cells, mask_to_camera, obstacle_cells
 from .stereo import (StereoConfig, StereoPipeline, dedupe_cells, disparity_regions, downscale,
-                     height_band, make_matcher, mask_boxes, match_factor,
+                     height_band, make_matcher, mask_boxes, match_factor, merge_strips,
                      points_from_disparity,
                      scaled_calibration, strip_boxes)
 
@@ -72,6 +72,9 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
                         doc="ground_range: a region's box is cut into column bands this wide (at "
                             "matching resolution), each trimmed to its masked rows and searched "
                             "from its own foot (0 = whole box)")
+    merge_bands: bool = _f(True, doc="ground_range: neighbouring bands' strips with the same "
+                                      "rows are matched as one box over the union of their "
+                                      "ranges when that is cheaper (fewer crops and margins)")
     depth_cue: str = _f("bm", choices=("off", "bm", "sgbm"),
                         doc="beyond the paper: coarse full-frame stereo with this matcher at "
                             "depth_cue_width_px; cells where enough coarse points lie in the "
@@ -292,7 +295,9 @@ class StereoNoveltyPipeline(Pipeline):
                     for (x0, y0, x1, y1) in regions], None
         bw = max(1, (o.band_cols * k) // g) if o.band_cols > 0 else None
         boxes, ranges = [], []
+        margin = self._stereo.matcher_for(calib_k).margin
         for (x0, y0, x1, y1) in regions:
+            region_b, region_r = [], []
             cuts = list(range(x0, x1, bw)) if bw else [x0]
             bands = []
             for i, c0 in enumerate(cuts):
@@ -312,8 +317,12 @@ class StereoNoveltyPipeline(Pipeline):
                                      o.ground_slack_m, o.pitch_slack_deg,
                                      o.near_from_foot and seen is not None, foot_row=foot,
                                      seen_max_disp=seen or 0.0)
-                boxes += bb
-                ranges += rr
+                region_b += bb
+                region_r += rr
+            if o.merge_bands:
+                region_b, region_r = merge_strips(region_b, region_r, margin)
+            boxes += region_b
+            ranges += region_r
         return boxes, ranges
 
     def process(self, inputs: SensorInputs) -> Detections:
