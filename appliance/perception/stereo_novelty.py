@@ -74,7 +74,8 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
                             "from its own foot (0 = whole box)")
     merge_bands: bool = _f(True, doc="ground_range: neighbouring bands' strips with the same "
                                       "rows are matched as one box over the union of their "
-                                      "ranges when that is cheaper (fewer crops and margins)")
+                                      "ranges when that is cheaper (fewer crops and margins); "
+                                      "each band keeps only the disparities of its own range")
     depth_cue: str = _f("bm", choices=("off", "bm", "sgbm"),
                         doc="beyond the paper: coarse full-frame stereo with this matcher at "
                             "depth_cue_width_px; cells where enough coarse points lie in the "
@@ -292,9 +293,9 @@ class StereoNoveltyPipeline(Pipeline):
         regions = mask_boxes(small.astype(np.uint8), 0)
         if not o.ground_range:
             return [(sc(x0, w), sc(y0, h), scu(x1, w, W // g * g), scu(y1, h, H // g * g))
-                    for (x0, y0, x1, y1) in regions], None
+                    for (x0, y0, x1, y1) in regions], None, None
         bw = max(1, (o.band_cols * k) // g) if o.band_cols > 0 else None
-        boxes, ranges = [], []
+        boxes, ranges, parts = [], [], []
         margin = self._stereo.matcher_for(calib_k).margin
         for (x0, y0, x1, y1) in regions:
             region_b, region_r = [], []
@@ -320,10 +321,13 @@ class StereoNoveltyPipeline(Pipeline):
                 region_b += bb
                 region_r += rr
             if o.merge_bands:
-                region_b, region_r = merge_strips(region_b, region_r, margin)
+                region_b, region_r, region_p = merge_strips(region_b, region_r, margin)
+            else:
+                region_p = [[(b[0], b[2], r[0], r[1])] for b, r in zip(region_b, region_r)]
             boxes += region_b
             ranges += region_r
-        return boxes, ranges
+            parts += region_p
+        return boxes, ranges, parts
 
     def process(self, inputs: SensorInputs) -> Detections:
         fr = inputs.stereo
@@ -354,8 +358,9 @@ class StereoNoveltyPipeline(Pipeline):
         matcher = self._stereo.matcher_for(calib)
         left, right = self._pair_for(fr, k, matcher)
         sel = rescale_mask(cam_mask, kd, k, left.shape[:2])
-        boxes, ranges = self._boxes(cam_mask, kd, (H, W), k, calib, matcher.nd, inputs.vehicle)
-        disp, work = disparity_regions(matcher, left, right, boxes, ranges)
+        boxes, ranges, parts = self._boxes(cam_mask, kd, (H, W), k, calib, matcher.nd,
+                                           inputs.vehicle)
+        disp, work = disparity_regions(matcher, left, right, boxes, ranges, parts)
         t2, c2 = time.perf_counter(), time.thread_time()
         pts, px = points_from_disparity(disp, calib, sel, max(1, o.point_stride // k),
                                         inputs.vehicle, o.use_attitude)
