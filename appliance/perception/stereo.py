@@ -388,10 +388,12 @@ def strip_boxes(calib, boxes, nd: int, vehicle=None, strip_rows: int = 64,
 SGBM_FIXED_DISPARITIES = 61
 
 
-def merge_strips(boxes, ranges, margin: int, fixed: int = SGBM_FIXED_DISPARITIES):
+def merge_strips(boxes, ranges, margin: int, fixed: int = SGBM_FIXED_DISPARITIES,
+                 max_width: int = 0):
     """Join side-by-side boxes with the same rows (neighbouring bands of one region) into one
     box searching the union of their ranges, when that costs no more: matching time ~
-    (width + 2 margin) x (fixed + n) per row.
+    (width + 2 margin) x (fixed + n) per row; no merged box wider than ``max_width`` (0 = no
+    limit).
 
     Returns (boxes, ranges, parts): ``parts[i]`` lists the members of box ``i`` as
     ``(x0, x1, d_min, n)``; pass them to :func:`disparity_regions`, which then keeps in each
@@ -403,7 +405,8 @@ def merge_strips(boxes, ranges, margin: int, fixed: int = SGBM_FIXED_DISPARITIES
         part = (b[0], b[2], r[0], r[1])
         if out and r[1] > 0:
             pb, pr, pp = out[-1]
-            if pb[1] == b[1] and pb[3] == b[3] and pb[2] == b[0] and pr[1] > 0:
+            if (pb[1] == b[1] and pb[3] == b[3] and pb[2] == b[0] and pr[1] > 0
+                    and (max_width <= 0 or b[2] - pb[0] <= max_width)):
                 lo, hi = min(pr[0], r[0]), max(pr[0] + pr[1], r[0] + r[1])
                 n = int(math.ceil((hi - lo) / 16.0)) * 16
                 cost = lambda w, nn: (w + 2 * margin) * (fixed + nn)       # noqa: E731

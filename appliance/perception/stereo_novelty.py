@@ -72,10 +72,17 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
                         doc="ground_range: a region's box is cut into column bands this wide (at "
                             "matching resolution), each trimmed to its masked rows and searched "
                             "from its own foot (0 = whole box)")
-    merge_bands: bool = _f(True, doc="ground_range: neighbouring bands' strips with the same "
-                                      "rows are matched as one box over the union of their "
-                                      "ranges when that is cheaper (fewer crops and margins); "
-                                      "each band keeps only the disparities of its own range")
+    merge_bands: bool = _f(False, doc="ground_range: neighbouring bands' strips with the same "
+                                       "rows are matched as one box over the union of their "
+                                       "ranges when that is cheaper (each band keeps only the "
+                                       "disparities of its own range). Off: 10-14 % less "
+                                       "matching time, but SGBM fills wide textureless spans "
+                                       "(the sky over the horizon) that narrow crops leave "
+                                       "empty: +19 % (64 px) to +59 % (no limit) stubble "
+                                       "points on the empty field")
+    merge_max_cols: int = _f(64, lo=0, hi=16384,
+                             doc="merge_bands: no merged box wider than this (matching "
+                                 "resolution px; 0 = no limit)")
     depth_cue: str = _f("bm", choices=("off", "bm", "sgbm"),
                         doc="beyond the paper: coarse full-frame stereo with this matcher at "
                             "depth_cue_width_px; cells where enough coarse points lie in the "
@@ -321,7 +328,8 @@ class StereoNoveltyPipeline(Pipeline):
                 region_b += bb
                 region_r += rr
             if o.merge_bands:
-                region_b, region_r, region_p = merge_strips(region_b, region_r, margin)
+                region_b, region_r, region_p = merge_strips(region_b, region_r, margin,
+                                                            max_width=o.merge_max_cols)
             else:
                 region_p = [[(b[0], b[2], r[0], r[1])] for b, r in zip(region_b, region_r)]
             boxes += region_b
