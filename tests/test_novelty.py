@@ -114,7 +114,8 @@ def test_density_with_few_neighbours_is_a_lower_bound_and_empty_model_is_zero():
     assert np.all(got <= ref * (1 + 1e-6)) and np.all(got > 0)
 
 
-def test_screened_density_decides_exactly_like_the_full_query():
+@pytest.mark.parametrize("k_first", [1, 8])
+def test_screened_density_decides_exactly_like_the_full_query(k_first):
     rng = np.random.default_rng(2)
     x = rng.normal(0.5, 0.03, (4000, 8)).astype(np.float32)
     x[:400] = rng.uniform(0, 1, (400, 8))                  # a sparse part: low densities
@@ -125,7 +126,7 @@ def test_screened_density_decides_exactly_like_the_full_query():
     full = m.density(q)
     assert (full == 0).any() and (full > 0).mean() > 0.5
     for rho in np.quantile(full[full > 0], [0.05, 0.5, 0.95]):
-        got = m.density_screened(q, rho, k_first=8)
+        got = m.density_screened(q, rho, k_first=k_first)
         np.testing.assert_array_equal(got < rho, full < rho)         # the same novel cells
         low = full < rho
         assert low.any() and (~low).any()

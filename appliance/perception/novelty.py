@@ -383,13 +383,15 @@ class ParzenModel:
         p = (kern * s.w[idx]).sum(1) * kernel_norm(self.sigma, self.dim) / s.wsum
         return p
 
-    def density_screened(self, q: np.ndarray, threshold: float, k_first: int = 4) -> np.ndarray:
+    def density_screened(self, q: np.ndarray, threshold: float, k_first: int = 1) -> np.ndarray:
         """:meth:`density` where it matters for ``density < threshold``: each query first sums
         its ``k_first`` nearest samples (within 3 sigma); that partial sum is a lower bound, so
         a query already at or above ``threshold`` is certainly not novel and keeps it; the rest
         are evaluated in full. The decision ``p < threshold`` is the same as with
         :meth:`density`; values at or above ``threshold`` are lower bounds. (About 4x faster on
-        a model of a few thousand samples: most cells look like the field.)"""
+        a model of a few thousand samples: most cells look like the field. ``k_first`` = 1:
+        the nearest sample alone already clears rho for the field's cells; 4 found the same
+        novel cells on the bench frames at twice the time, 1.0 vs 2.0 ms at 40x32 cells.)"""
         s = self._snap
         q = np.asarray(q, np.float32).reshape(-1, self.dim)
         if s.tree is None or len(q) == 0:
@@ -532,8 +534,10 @@ def obstacle_cells(obstacle_px: np.ndarray, grid: tuple[int, int], cell_px: int,
     p = np.asarray(obstacle_px, np.float64).reshape(-1, 2)
     if len(p) == 0:
         return out
-    c = np.clip((p // cell_px).astype(int), 0, [cols - 1, rows - 1])
-    out[c[:, 1], c[:, 0]] = True
+    # per column: clipping an (N, 2) array against a 2-list broadcasts with an inner loop of 2
+    cu = np.clip((p[:, 0] // cell_px).astype(np.intp), 0, cols - 1)
+    cv = np.clip((p[:, 1] // cell_px).astype(np.intp), 0, rows - 1)
+    out[cv, cu] = True
     r = int(math.ceil(margin_px / cell_px))
     return dilate_cells(out, r)
 
