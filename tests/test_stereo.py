@@ -37,8 +37,17 @@ def _aloe_half():
     return half(L), half(R), gt_half, np.ones(gt_half.shape, bool)
 
 
+try:
+    import elas  # noqa: F401  (optional, GPLv3: tools/install_elas.sh)
+    HAVE_ELAS = True
+except ImportError:
+    HAVE_ELAS = False
+ELAS = pytest.param("elas", marks=pytest.mark.skipif(
+    not HAVE_ELAS, reason="pyelas (optional, GPLv3) not installed: tools/install_elas.sh"))
+
+
 @pytest.mark.parametrize("pair,nd", [("cones", 64), ("aloe", 144)])
-@pytest.mark.parametrize("matcher", ["bm", "sgbm"])
+@pytest.mark.parametrize("matcher", ["bm", "sgbm", ELAS])
 def test_matcher_against_ground_truth_disparity(pair, nd, matcher):
     L, R, gt, vis = _cones() if pair == "cones" else _aloe_half()
     m = make_matcher(StereoConfig(matcher=matcher, num_disparities=nd), 1.0, 1.0)
@@ -385,3 +394,28 @@ def test_masks_made_at_a_lower_resolution_equal_the_full_resolution_round_trip(f
     want_small = cv2.resize(full[:H // g * g, :W // g * g], (W // g, H // g),
                             interpolation=cv2.INTER_AREA) > 0
     assert np.array_equal(coarse_mask(m, f, g, (H // g, W // g)), want_small)
+
+
+def test_elas_without_pyelas_says_how_to_get_it(monkeypatch):
+    import sys
+    monkeypatch.setitem(sys.modules, "elas", None)          # import elas -> ImportError
+    with pytest.raises(RuntimeError, match="pyelas.*GPLv3.*no-build-isolation"):
+        make_matcher(StereoConfig(matcher="elas", num_disparities=64), 1.0, 1.0)
+
+
+@pytest.mark.skipif(not HAVE_ELAS, reason="pyelas (optional, GPLv3) not installed")
+def test_elas_on_a_box_equals_its_full_frame_result_inside_it():
+    """Region matching with LIBELAS: a box far from the image border gets (nearly) the
+    full-frame disparities (ELAS interpolates from support points, so a crop's support set
+    differs a little at its edges)."""
+    L, R, gt, vis = _cones()
+    m = make_matcher(StereoConfig(matcher="elas", num_disparities=64), 1.0, 1.0)
+    H, W = L.shape[:2]
+    full, _ = disparity_regions(m, L, R, [(0, 0, W, H)])
+    box = (200, 120, 300, 220)
+    d, _ = disparity_regions(m, L, R, [box])
+    x0, y0, x1, y1 = box
+    both = (full[y0:y1, x0:x1] > 0) & (d[y0:y1, x0:x1] > 0)
+    assert both.mean() > 0.8
+    assert (np.abs(full[y0:y1, x0:x1] - d[y0:y1, x0:x1])[both] <= 1.0).mean() > 0.9
+    assert not d[:y0].any() and not d[y1:].any()

@@ -98,6 +98,15 @@ ROWS = [  # (label, pipeline, options)
     ("SGBM + novelty", "stereo-novelty", {"matcher": "sgbm", "depth_cue": "off"}),
     ("SGBM + novelty + depth cue", "stereo-novelty", {"matcher": "sgbm", "depth_cue": "bm"}),
 ]
+try:                                       # LIBELAS, the paper's matcher: optional (GPLv3)
+    import elas  # noqa: F401  (tools/install_elas.sh)
+    ROWS += [
+        ("ELAS", "stereo", {"matcher": "elas"}),
+        ("ELAS + novelty", "stereo-novelty", {"matcher": "elas", "depth_cue": "off"}),
+        ("ELAS + novelty + depth cue", "stereo-novelty", {"matcher": "elas", "depth_cue": "bm"}),
+    ]
+except ImportError:
+    pass
 
 
 def run_dir(runs: Path, scene: str, scale: float, warmup: int, seed: int = 0) -> Path:

@@ -97,11 +97,18 @@ class Matcher:
                 speckleRange=o.speckle_range, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
         elif kind == "elas":
             try:
-                import elas  # noqa: F401  (pyelas, GPLv3: optional extra)
+                import elas  # (pyelas, GPLv3: optional, never a dependency)
             except ImportError as exc:
-                raise RuntimeError("matcher 'elas' needs the optional pyelas package "
-                                   "(GPLv3): pip install pyelas") from exc
-            self.m = None
+                raise RuntimeError(
+                    "matcher 'elas' needs the optional pyelas package (GPLv3), which does not "
+                    "build from the package index as published: CFLAGS=-I$(python -c 'import "
+                    "numpy; print(numpy.get_include())') pip install --no-build-isolation wheel "
+                    "cython pyelas") from exc
+            self.m = elas.Elas()
+            self.m.set_preset(elas.PRESET_ROBOTICS)      # LIBELAS's robotics setting
+            self.m.disp_min = 0
+            self.m.disp_max = num_disparities - 1
+            self.m.postprocess_only_left = True
         else:
             raise ValueError(f"unknown matcher {kind!r}")
 
@@ -135,17 +142,10 @@ class Matcher:
                 left = cv2.cvtColor(left, cv2.COLOR_BGR2GRAY) if left.ndim == 3 else left
                 right = cv2.cvtColor(right, cv2.COLOR_BGR2GRAY) if right.ndim == 3 else right
             return self.m.compute(left, right).astype(np.float32) * np.float32(1 / 16.0)
-        import elas
         gl = cv2.cvtColor(left, cv2.COLOR_BGR2GRAY) if left.ndim == 3 else left
         gr = cv2.cvtColor(right, cv2.COLOR_BGR2GRAY) if right.ndim == 3 else right
-        p = elas.Elas_parameters()
-        p.postprocess_only_left = True
-        p.disp_max = self.nd
-        e = elas.Elas(p)
-        dl = np.zeros(gl.shape, np.float32)
-        dr = np.zeros(gl.shape, np.float32)
-        e.process_stereo(np.ascontiguousarray(gl), np.ascontiguousarray(gr), dl, dr)
-        return dl
+        dl, _ = self.m.process(np.ascontiguousarray(gl), np.ascontiguousarray(gr))
+        return np.asarray(dl, np.float32)              # LIBELAS marks "none" with -10
 
 
 def make_matcher(o, fx: float, baseline_m: float) -> Matcher:
