@@ -186,6 +186,15 @@ def cmd_eval(a) -> int:
     return 0
 
 
+def _check_matchers(cfg) -> None:
+    """A stereo matcher the config asks for that cannot run here is a ConfigError."""
+    from appliance.config import pipeline_options
+    from appliance.perception.stereo import check_matcher
+    for name in cfg.perception.pipelines:
+        if name in ("stereo", "stereo-novelty"):
+            check_matcher(pipeline_options(cfg, name).matcher, f"perception.{name}")
+
+
 def _check_cue_models(cfg) -> list[str]:
     """Load every learned-cue model the config asks for (what the daemon will read at start):
     a required one that fails raises its CueModelError; an optional one gives a warning."""
@@ -216,6 +225,7 @@ def _check_cue_models(cfg) -> list[str]:
 def cmd_config_check(a) -> int:
     from appliance.config import load_config
     cfg = load_config(a.file)
+    _check_matchers(cfg)
     notes = _check_cue_models(cfg)
     print(f"{a.file}: OK ({len(cfg.devices)} devices: "
           f"{', '.join(f'{d.name}={d.type}' for d in cfg.devices) or 'none'}; pipelines: "

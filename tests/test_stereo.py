@@ -419,3 +419,25 @@ def test_elas_on_a_box_equals_its_full_frame_result_inside_it():
     assert both.mean() > 0.8
     assert (np.abs(full[y0:y1, x0:x1] - d[y0:y1, x0:x1])[both] <= 1.0).mean() > 0.9
     assert not d[:y0].any() and not d[y1:].any()
+
+
+@pytest.mark.parametrize("pipeline", ["stereo", "stereo-novelty"])
+def test_elas_without_pyelas_is_a_config_error_at_start(monkeypatch, pipeline, tmp_path,
+                                                       capsys):
+    """Not a fault on the first frame: the pipeline refuses to be built, and `config check`
+    says so, naming the key."""
+    import sys
+    from appliance.cli import main
+    from appliance.config import parse_config
+    from hal.errors import ConfigError
+    monkeypatch.setitem(sys.modules, "elas", None)
+    cfg = parse_config({"perception": {"pipelines": [pipeline],
+                                       pipeline: {"matcher": "elas"}}})
+    with pytest.raises(ConfigError, match=rf"perception.{pipeline}.*pyelas"):
+        make_pipeline(pipeline, cfg)
+    f = tmp_path / "c.toml"
+    f.write_text(f'[perception]\npipelines = ["{pipeline}"]\n[perception.{pipeline}]\n'
+                 'matcher = "elas"\n')
+    assert main(["config", "check", str(f)]) != 0
+    err = capsys.readouterr().err
+    assert f"[perception.{pipeline}]" in err and "install_elas" in err

@@ -148,6 +148,20 @@ class Matcher:
         return np.asarray(dl, np.float32)              # LIBELAS marks "none" with -10
 
 
+def check_matcher(kind: str, key: str) -> None:
+    """Raise a ConfigError naming ``key`` when matcher ``kind`` cannot run here (LIBELAS
+    without its optional binding): at start-up, not on the first frame."""
+    if kind != "elas":
+        return
+    try:
+        import elas  # noqa: F401
+    except ImportError:
+        from hal.errors import ConfigError
+        raise ConfigError('matcher = "elas" needs the optional pyelas binding (GPLv3), not '
+                          'installed: ./tools/install_elas.sh, or matcher = "sgbm"',
+                          key=key) from None
+
+
 def make_matcher(o, fx: float, baseline_m: float) -> Matcher:
     return Matcher(o.matcher, auto_disparities(o, fx, baseline_m), block_of(o), o)
 
@@ -492,6 +506,7 @@ class StereoPipeline(Pipeline):
 
     def __init__(self, options=None):
         super().__init__(options)
+        check_matcher(self.options.matcher, f"perception.{self.name}")
         self._matcher = None
         self._key = None
 

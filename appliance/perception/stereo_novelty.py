@@ -22,7 +22,7 @@ from appliance.config import _f
 from .base import Detections, Pipeline, SensorInputs
 from .cue import CueOptions, LearnedCue
 from .novelty import NoveltyDetector, dilate_cells, mask_to_camera, obstacle_cells
-from .stereo import (StereoConfig, StereoPipeline, dedupe_cells, disparity_regions, downscale,
+from .stereo import (StereoConfig, StereoPipeline, check_matcher, dedupe_cells, disparity_regions, downscale,
                      height_band, make_matcher, mask_boxes, match_factor, merge_strips,
                      points_from_disparity,
                      scaled_calibration, strip_boxes)
@@ -162,6 +162,7 @@ class StereoNoveltyPipeline(Pipeline):
     def __init__(self, options=None, background: bool = True, cue_model=None):
         super().__init__(options)
         o = self.options
+        check_matcher(o.matcher, f"perception.{self.name}")
         self.cue = LearnedCue(o.cue, self.cue_domain, o.cue_model, o.cue_threshold, o.cue_threads,
                               model=cue_model)
         self.novelty = NoveltyDetector(self.options, background=background)
