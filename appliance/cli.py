@@ -187,12 +187,14 @@ def cmd_eval(a) -> int:
 
 
 def _check_matchers(cfg) -> None:
-    """A stereo matcher the config asks for that cannot run here is a ConfigError."""
+    """A stereo matcher the config asks for that cannot run here, or that the daemon refuses
+    (LIBELAS), is a ConfigError."""
     from appliance.config import pipeline_options
-    from appliance.perception.stereo import check_matcher
+    from appliance.perception.stereo import check_daemon_matchers, check_matcher
     for name in cfg.perception.pipelines:
         if name in ("stereo", "stereo-novelty"):
             check_matcher(pipeline_options(cfg, name).matcher, f"perception.{name}")
+    check_daemon_matchers(cfg)            # a config for the box: not LIBELAS
 
 
 def _check_cue_models(cfg) -> list[str]:

@@ -73,6 +73,8 @@ class Daemon:
         if not cfg.devices:
             raise ConfigError("no [devices] configured: give a config with devices, or run "
                               "with --sim or --replay RUN", file=cfg.source)
+        from appliance.perception.stereo import check_daemon_matchers
+        check_daemon_matchers(cfg)
         self.cfg = cfg
         self.mode = mode
         self.clock = clock or (MonotonicClock() if mode == "hardware" else ManualClock(10**9))

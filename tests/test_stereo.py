@@ -441,3 +441,45 @@ def test_elas_without_pyelas_is_a_config_error_at_start(monkeypatch, pipeline, t
     assert main(["config", "check", str(f)]) != 0
     err = capsys.readouterr().err
     assert f"[perception.{pipeline}]" in err and "install_elas" in err
+
+
+@pytest.mark.skipif(not HAVE_ELAS, reason="pyelas (optional, GPLv3) not installed")
+def test_the_daemon_refuses_libelas_and_config_check_says_why(tmp_path, capsys):
+    """LIBELAS can segfault the process on small crops: fine for `fieldguard eval`, never in
+    the box. The daemon does not start with it; config check names the key."""
+    from appliance.cli import main
+    from appliance.config import parse_config
+    from appliance.daemon import Daemon, sim_config
+    from hal.errors import ConfigError
+    cfg = parse_config({"perception": {"pipelines": ["stereo-novelty"],
+                                       "stereo-novelty": {"matcher": "elas"}}})
+    with pytest.raises(ConfigError, match="offline comparison"):
+        Daemon(sim_config(cfg), mode="sim", pace=0.0, serve_status=False)
+    make_pipeline("stereo-novelty", cfg).close()             # eval may build it
+    f = tmp_path / "c.toml"
+    f.write_text('[perception]\npipelines = ["stereo"]\n[perception.stereo]\nmatcher = "elas"\n')
+    assert main(["config", "check", str(f)]) != 0
+    err = capsys.readouterr().err
+    assert "[perception.stereo]" in err and "offline comparison" in err
+
+
+@pytest.mark.skipif(not HAVE_ELAS, reason="pyelas (optional, GPLv3) not installed")
+@pytest.mark.parametrize("rows", [16, 24, 32])
+def test_elas_on_short_boxes_does_not_crash_the_process(rows):
+    """The crop sizes that made LIBELAS segfault (16-32 rows of texture) are grown to 64 rows
+    around the box: run in a child process, so a crash fails this test instead of the suite."""
+    import subprocess
+    import sys
+    code = (
+        "import numpy as np\n"
+        "from appliance.perception.stereo import StereoConfig, make_matcher, disparity_regions\n"
+        "rng = np.random.default_rng(0)\n"
+        "L = rng.integers(0, 255, (200, 300)).astype(np.uint8)\n"
+        "R = np.roll(L, -5, axis=1)\n"
+        "m = make_matcher(StereoConfig(matcher='elas', num_disparities=64), 1.0, 1.0)\n"
+        f"d, _ = disparity_regions(m, L, R, [(150, 100, 182, {100 + rows})])\n"
+        "print('ok', int((np.abs(d[d > 0] - 5) < 1).sum()))\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       cwd=Path(__file__).resolve().parents[1], timeout=60)
+    assert r.returncode == 0, r.stderr[-500:]
+    assert r.stdout.split()[-2] == "ok" and int(r.stdout.split()[-1]) > 0

@@ -119,6 +119,13 @@ class Matcher:
         return self.kind in ("bm", "elas") or getattr(self, "grey", False)
 
     @property
+    def min_crop(self) -> tuple[int, int]:
+        """(rows, columns beyond the search range) a crop needs at least. LIBELAS crashes the
+        process (a segmentation fault in its triangulation) on crops of 16-32 rows with few
+        support points: its crops are at least 64 x (n + 64)."""
+        return (64, 64) if self.kind == "elas" else (0, 0)
+
+    @property
     def margin(self) -> int:
         return self.block // 2 + 1
 
@@ -160,6 +167,22 @@ def check_matcher(kind: str, key: str) -> None:
         raise ConfigError('matcher = "elas" needs the optional pyelas binding (GPLv3), not '
                           'installed: ./tools/install_elas.sh, or matcher = "sgbm"',
                           key=key) from None
+
+
+def check_daemon_matchers(cfg) -> None:
+    """The daemon refuses LIBELAS: it can crash the whole process (a segmentation fault in its
+    triangulation on crops with too few support points; seen on 16-32-row crops, and crops are
+    now at least 64 rows, but that is not a proof). It is for offline comparison with
+    ``fieldguard eval``; a safety box must not run code that can take the loop down."""
+    from appliance.config import pipeline_options
+    from hal.errors import ConfigError
+    for name in cfg.perception.pipelines:
+        if name in ("stereo", "stereo-novelty") and \
+                pipeline_options(cfg, name).matcher == "elas":
+            raise ConfigError('matcher = "elas" (LIBELAS) is for offline comparison '
+                              '(fieldguard eval RUN --pipeline ... --config ...): it can crash '
+                              'the process on small crops, so the daemon does not run it; use '
+                              '"sgbm"', key=f"perception.{name}", file=cfg.source)
 
 
 def make_matcher(o, fx: float, baseline_m: float) -> Matcher:
@@ -244,6 +267,15 @@ def disparity_regions(matcher: Matcher, left: np.ndarray, right: np.ndarray,
                 cx1 = min(W, cx0 + nd + 2 * m + 1)
         if cy1 - cy0 < 2 * m + 1:
             cy0, cy1 = max(0, cy0 - m), min(H, cy1 + m)
+        rows, cols_extra = matcher.min_crop
+        if cy1 - cy0 < rows:                          # grow about the box, inside the image
+            grow = rows - (cy1 - cy0)
+            cy0 = max(0, cy0 - grow // 2)
+            cy1 = min(H, cy0 + rows)
+            cy0 = max(0, cy1 - rows)
+        if cx1 - cx0 < nd + cols_extra:
+            cx1 = min(W, cx0 + nd + cols_extra)
+            cx0 = max(0, cx1 - (nd + cols_extra))
         lc = np.ascontiguousarray(left[cy0:cy1, cx0:cx1])
         rc = np.ascontiguousarray(_columns(right[cy0:cy1], cx0 - dmin, cx1 - dmin))
         d = mt.compute(lc, rc)
