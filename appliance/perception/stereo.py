@@ -72,6 +72,22 @@ def block_of(o) -> int:
     return b | 1
 
 
+def _stdout_to_stderr(fn, *args):
+    """Call ``fn`` with file descriptor 1 pointing at stderr: LIBELAS prints its warnings
+    ("Need at least 3 support points!") with printf, which would mix into a tool's stdout
+    (``fieldguard eval --json``). Offline use only (the daemon refuses LIBELAS)."""
+    import os
+    import sys
+    sys.stdout.flush()
+    saved = os.dup(1)
+    try:
+        os.dup2(2, 1)
+        return fn(*args)
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
 class Matcher:
     """One dense matcher; :meth:`compute` returns float32 disparity in px (<= 0 = none) for a
     left/right pair of equal size (BGR or grey)."""
@@ -151,7 +167,8 @@ class Matcher:
             return self.m.compute(left, right).astype(np.float32) * np.float32(1 / 16.0)
         gl = cv2.cvtColor(left, cv2.COLOR_BGR2GRAY) if left.ndim == 3 else left
         gr = cv2.cvtColor(right, cv2.COLOR_BGR2GRAY) if right.ndim == 3 else right
-        dl, _ = self.m.process(np.ascontiguousarray(gl), np.ascontiguousarray(gr))
+        dl, _ = _stdout_to_stderr(self.m.process, np.ascontiguousarray(gl),
+                                  np.ascontiguousarray(gr))
         return np.asarray(dl, np.float32)              # LIBELAS marks "none" with -10
 
 
