@@ -191,10 +191,10 @@ def _check_matchers(cfg) -> None:
     (LIBELAS), is a ConfigError."""
     from appliance.config import pipeline_options
     from appliance.perception.stereo import check_daemon_matchers, check_matcher
+    check_daemon_matchers(cfg)            # a config for the box: never LIBELAS
     for name in cfg.perception.pipelines:
         if name in ("stereo", "stereo-novelty"):
             check_matcher(pipeline_options(cfg, name).matcher, f"perception.{name}")
-    check_daemon_matchers(cfg)            # a config for the box: not LIBELAS
 
 
 def _check_cue_models(cfg) -> list[str]:
