@@ -61,13 +61,18 @@ def test_matcher_against_ground_truth_disparity(pair, nd, matcher):
     assert np.median(err) < 0.5
 
 
-def test_region_matching_equals_full_frame_inside_the_box_and_nothing_outside():
-    L, R, gt, _ = _cones()
-    m = make_matcher(StereoConfig(matcher="bm", num_disparities=64), 1.0, 1.0)
+def _cones_full_and_box(matcher: str, box=(200, 120, 300, 220)):
+    """Cones matched over the whole frame and over ``box`` alone: (full, work_full), (part,
+    work), box."""
+    L, R, _, _ = _cones()
+    m = make_matcher(StereoConfig(matcher=matcher, num_disparities=64), 1.0, 1.0)
     H, W = L.shape[:2]
-    full, work_full = disparity_regions(m, L, R, [(0, 0, W, H)])
-    box = (200, 120, 300, 220)
-    part, work = disparity_regions(m, L, R, [box])
+    return disparity_regions(m, L, R, [(0, 0, W, H)]), disparity_regions(m, L, R, [box]), box
+
+
+def test_region_matching_equals_full_frame_inside_the_box_and_nothing_outside():
+    (full, work_full), (part, work), box = _cones_full_and_box("bm")
+    H, W = full.shape
     x0, y0, x1, y1 = box
     np.testing.assert_array_equal(part[y0:y1, x0:x1], full[y0:y1, x0:x1])
     outside = np.ones((H, W), bool)
@@ -408,12 +413,7 @@ def test_elas_on_a_box_equals_its_full_frame_result_inside_it():
     """Region matching with LIBELAS: a box far from the image border gets (nearly) the
     full-frame disparities (ELAS interpolates from support points, so a crop's support set
     differs a little at its edges)."""
-    L, R, gt, vis = _cones()
-    m = make_matcher(StereoConfig(matcher="elas", num_disparities=64), 1.0, 1.0)
-    H, W = L.shape[:2]
-    full, _ = disparity_regions(m, L, R, [(0, 0, W, H)])
-    box = (200, 120, 300, 220)
-    d, _ = disparity_regions(m, L, R, [box])
+    (full, _), (d, _), box = _cones_full_and_box("elas")
     x0, y0, x1, y1 = box
     both = (full[y0:y1, x0:x1] > 0) & (d[y0:y1, x0:x1] > 0)
     assert both.mean() > 0.8
