@@ -136,6 +136,9 @@ def test_contested_claim_then_status_frames_decode(canrig):
     assert c.address == 0x81 and c.lost >= 1 and c.state == ClaimState.CLAIMED
     time.sleep(1.0)
     rep = report(canrig.vehicle)
+    # a handful of claims, not a storm (the peer once answered its own echo ~25 000 times a
+    # second; the flood dropped frames on the way to the vehicle)
+    assert len(rep["claims"]) < 50, f"{len(rep['claims'])} address claims on the bus"
     assert rep["status_ok"] > 5 and rep["bad_crc"] == 0 and rep["bad_counter"] == 0
     assert rep["sa"] == [0x81] and rep["sectors"] >= 12 * 5
     assert rep["last_status"]["FG_State"] == "CLEAR"

@@ -28,6 +28,20 @@ def main():
             k = f"{pgn}:{sa}"
             rx[k] = rx.get(k, 0) + 1
 
+    # udp_multicast delivers a node's own frames back to it (SocketCAN does not, by default).
+    # can-j1939 answers an address claim carrying its own NAME by claiming again ("the
+    # contender lost"), so its own echo made it claim ~25 000 times a second: the flood
+    # overflowed the receivers' socket buffers and, now and then, a status frame of the box
+    # was dropped on the way to the vehicle peer (a flaky alive-counter failure). NAMEs are
+    # unique on a J1939 bus, so a claim with ours is our echo: ignore it.
+    process_claim = ca._process_addressclaim
+
+    def claim_unless_own_echo(mid, data, timestamp):
+        if j1939.Name(bytes=data).value == name.value:
+            return
+        process_claim(mid, data, timestamp)
+
+    ca._process_addressclaim = claim_unless_own_echo
     ecu.subscribe(on_message)
     ecu.add_ca(controller_application=ca)
     ca.start()
