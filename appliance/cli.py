@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 import threading
 import time
@@ -178,23 +179,33 @@ def cmd_eval(a) -> int:
     from appliance.evaluation import evaluate_run, format_table
     from appliance.progress import Progress
     cfg = _load(a.config) if a.config else None
-    res = evaluate_run(a.run, a.pipeline, cfg, progress=Progress(f"eval {a.pipeline}", 1))
     if a.json:
+        # stdout carries the JSON only: anything printed while evaluating (a native library's
+        # printf, e.g. LIBELAS's warnings) goes to stderr
+        with _fd1_on_stderr():
+            res = evaluate_run(a.run, a.pipeline, cfg,
+                               progress=Progress(f"eval {a.pipeline}", 1))
         print(json.dumps(res, indent=2, default=float))
-    else:
-        print(format_table(res))
+        return 0
+    res = evaluate_run(a.run, a.pipeline, cfg, progress=Progress(f"eval {a.pipeline}", 1))
+    print(format_table(res))
     return 0
 
 
-def _check_matchers(cfg) -> None:
-    """A stereo matcher the config asks for that cannot run here, or that the daemon refuses
-    (LIBELAS), is a ConfigError."""
-    from appliance.config import pipeline_options
-    from appliance.perception.stereo import check_daemon_matchers, check_matcher
-    check_daemon_matchers(cfg)            # a config for the box: never LIBELAS
-    for name in cfg.perception.pipelines:
-        if name in ("stereo", "stereo-novelty"):
-            check_matcher(pipeline_options(cfg, name).matcher, f"perception.{name}")
+class _fd1_on_stderr:
+    """File descriptor 1 points at stderr inside the block (what native code prints to
+    stdout lands there), and back after it."""
+
+    def __enter__(self):
+        sys.stdout.flush()
+        self._saved = os.dup(1)
+        os.dup2(2, 1)
+
+    def __exit__(self, *exc):
+        sys.stdout.flush()
+        os.dup2(self._saved, 1)
+        os.close(self._saved)
+        return False
 
 
 def _check_cue_models(cfg) -> list[str]:
@@ -227,7 +238,8 @@ def _check_cue_models(cfg) -> list[str]:
 def cmd_config_check(a) -> int:
     from appliance.config import load_config
     cfg = load_config(a.file)
-    _check_matchers(cfg)
+    from appliance.perception.stereo import check_daemon_matchers
+    check_daemon_matchers(cfg)            # a config for the box: never LIBELAS
     notes = _check_cue_models(cfg)
     print(f"{a.file}: OK ({len(cfg.devices)} devices: "
           f"{', '.join(f'{d.name}={d.type}' for d in cfg.devices) or 'none'}; pipelines: "

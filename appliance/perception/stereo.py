@@ -72,28 +72,13 @@ def block_of(o) -> int:
     return b | 1
 
 
-def _stdout_to_stderr(fn, *args):
-    """Call ``fn`` with file descriptor 1 pointing at stderr: LIBELAS prints its warnings
-    ("Need at least 3 support points!") with printf, which would mix into a tool's stdout
-    (``fieldguard eval --json``). Offline use only (the daemon refuses LIBELAS)."""
-    import os
-    import sys
-    sys.stdout.flush()
-    saved = os.dup(1)
-    try:
-        os.dup2(2, 1)
-        return fn(*args)
-    finally:
-        os.dup2(saved, 1)
-        os.close(saved)
-
-
 class Matcher:
     """One dense matcher; :meth:`compute` returns float32 disparity in px (<= 0 = none) for a
     left/right pair of equal size (BGR or grey)."""
 
     def __init__(self, kind: str, num_disparities: int, block: int, o):
         self.kind, self.nd, self.block = kind, num_disparities, block
+        self.grey = False                             # sgbm on grey images (sgbm_colour off)
         self._o = o
         self._by_range: dict[int, "Matcher"] = {}
         if kind == "bm":
@@ -132,7 +117,7 @@ class Matcher:
     def grey_input(self) -> bool:
         """True when the matcher works on grey images (a caller with many crops of one frame
         converts the frame once instead of every crop)."""
-        return self.kind in ("bm", "elas") or getattr(self, "grey", False)
+        return self.kind in ("bm", "elas") or self.grey
 
     @property
     def min_crop(self) -> tuple[int, int]:
@@ -167,9 +152,10 @@ class Matcher:
             return self.m.compute(left, right).astype(np.float32) * np.float32(1 / 16.0)
         gl = cv2.cvtColor(left, cv2.COLOR_BGR2GRAY) if left.ndim == 3 else left
         gr = cv2.cvtColor(right, cv2.COLOR_BGR2GRAY) if right.ndim == 3 else right
-        dl, _ = _stdout_to_stderr(self.m.process, np.ascontiguousarray(gl),
-                                  np.ascontiguousarray(gr))
-        return np.asarray(dl, np.float32)              # LIBELAS marks "none" with -10
+        # LIBELAS prints warnings with printf: `fieldguard eval --json` keeps them off its
+        # stdout (appliance.cli); LIBELAS marks "none" with -10
+        dl, _ = self.m.process(np.ascontiguousarray(gl), np.ascontiguousarray(gr))
+        return np.asarray(dl, np.float32)
 
 
 def check_matcher(kind: str, key: str) -> None:
@@ -194,8 +180,7 @@ def check_daemon_matchers(cfg) -> None:
     from appliance.config import pipeline_options
     from hal.errors import ConfigError
     for name in cfg.perception.pipelines:
-        if name in ("stereo", "stereo-novelty") and \
-                pipeline_options(cfg, name).matcher == "elas":
+        if name != "fused" and getattr(pipeline_options(cfg, name), "matcher", None) == "elas":
             raise ConfigError('matcher = "elas" (LIBELAS) is for offline comparison '
                               '(fieldguard eval RUN --pipeline ... --config ...): it can crash '
                               'the process on small crops, so the daemon does not run it; use '

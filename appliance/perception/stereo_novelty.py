@@ -285,12 +285,14 @@ class StereoNoveltyPipeline(Pipeline):
         ``full_hw``) and their search ranges.
 
         Regions are found on a mask 8x smaller than the camera's image (boxes grow by up to
-        8 px): cheaper than labelling the full-resolution mask. With ``ground_range`` each region's box is cut into
-        column bands of ``band_cols``, each trimmed to the rows its mask occupies; the foot of a
+        8 px): cheaper than labelling the full-resolution mask. With ``ground_range`` each
+        region's box is cut into column bands of ``band_cols``, each trimmed to the rows its
+        mask occupies; the foot of a
         band (for ``near_from_foot``) is the lowest masked row of it and its two neighbours in
         the same region (an overhang up to one band wide is still searched from its foot), and
         each band is cut into strips of ``strip_rows`` with their own range
-        (:func:`strip_boxes`)."""
+        (:func:`strip_boxes`). Returns (boxes, ranges, parts); ``parts`` (for
+        :func:`disparity_regions`) only with ``merge_bands``, else None."""
         o: StereoNoveltyConfig = self.options
         H, W = full_hw
         g = 8
@@ -303,8 +305,8 @@ class StereoNoveltyPipeline(Pipeline):
             return [(sc(x0, w), sc(y0, h), scu(x1, w, W // g * g), scu(y1, h, H // g * g))
                     for (x0, y0, x1, y1) in regions], None, None
         bw = max(1, (o.band_cols * k) // g) if o.band_cols > 0 else None
-        boxes, ranges, parts = [], [], []
-        margin = self._stereo.matcher_for(calib_k).margin
+        boxes, ranges = [], []
+        parts = [] if o.merge_bands else None
         for (x0, y0, x1, y1) in regions:
             region_b, region_r = [], []
             cuts = list(range(x0, x1, bw)) if bw else [x0]
@@ -329,13 +331,12 @@ class StereoNoveltyPipeline(Pipeline):
                 region_b += bb
                 region_r += rr
             if o.merge_bands:
-                region_b, region_r, region_p = merge_strips(region_b, region_r, margin,
-                                                            max_width=o.merge_max_cols)
-            else:
-                region_p = [[(b[0], b[2], r[0], r[1])] for b, r in zip(region_b, region_r)]
+                region_b, region_r, region_p = merge_strips(
+                    region_b, region_r, self._stereo.matcher_for(calib_k).margin,
+                    max_width=o.merge_max_cols)
+                parts += region_p
             boxes += region_b
             ranges += region_r
-            parts += region_p
         return boxes, ranges, parts
 
     def process(self, inputs: SensorInputs) -> Detections:
