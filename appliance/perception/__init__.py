@@ -10,7 +10,7 @@ import importlib
 
 from hal.errors import ConfigError
 
-from .base import Detections, Pipeline, SensorInputs
+from .base import Candidate, Detections, Pipeline, SensorInputs
 
 # name -> "module:Class"; imported lazily so a missing optional dependency of one pipeline
 # does not stop the others.
@@ -59,5 +59,5 @@ def make_pipeline(name: str, config=None) -> Pipeline:
     return cls(pipeline_options(cfg, name))
 
 
-__all__ = ["Detections", "Pipeline", "SensorInputs", "make_pipeline", "known_pipelines",
+__all__ = ["Candidate", "Detections", "Pipeline", "SensorInputs", "make_pipeline", "known_pipelines",
            "register_pipeline", "pipeline_config_class"]

@@ -22,12 +22,38 @@ class SensorInputs:
         return getattr(self, sensor) is not None
 
 
+@dataclass(frozen=True)
+class Candidate:
+    """One obstacle candidate of one frame, in the vehicle frame (metres): a cluster of points
+    that stands above the ground, as a front end saw it. The tracker associates candidates
+    across frames; the evidence model weighs them by ``sources``.
+
+    ``sources`` names the cues that saw it: "geometry" (height above ground from stereo or
+    depth), "novelty", "cue" (the learned cue), "colour" (RGB-D colour class), "texture",
+    "laser". ``confidence`` is in [0, 1]: how sure the front end is that this is not noise
+    (disparity consistency, point support), not whether it is an obstacle."""
+
+    x_m: float                    # footprint centre
+    y_m: float
+    length_m: float               # footprint extent along x
+    width_m: float                # footprint extent along y
+    height_m: float               # top above the local ground
+    points: int                   # supporting 3-D points (or cells for a cell cluster)
+    confidence: float
+    sources: tuple[str, ...]
+    ground_contact: bool = True   # the cluster reaches down to the ground
+    pipeline: str = "?"           # which pipeline produced it
+
+
 @dataclass
 class Detections:
-    """Obstacle points in the vehicle frame (x forward, y left), metres."""
+    """Obstacle points in the vehicle frame (x forward, y left), metres; optionally the same
+    evidence grouped into obstacle candidates (empty when a front end does not cluster: the
+    tracker then clusters the points itself)."""
 
     points_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.float32))
     debug: dict = field(default_factory=dict)     # pictures and figures for snapshot/status
+    candidates: tuple[Candidate, ...] = ()
 
     @staticmethod
     def empty() -> "Detections":
