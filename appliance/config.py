@@ -121,6 +121,33 @@ class SimConfig:
 
 
 @dataclass(frozen=True)
+class ConsoleConfig:
+    listen: str = _f("127.0.0.1:8080", doc="web console HOST:PORT (read-only); \"\" = off. "
+                                           "Another address than loopback only when set here")
+    rate_hz: float = _f(2.0, lo=0.1, hi=10.0, doc="pictures handed to the console per second")
+
+
+@dataclass(frozen=True)
+class FoxgloveConfig:
+    listen: str = _f("", doc="Foxglove WebSocket server HOST:PORT (live view in Foxglove); "
+                             "\"\" = off (default)")
+
+
+def parse_listen(value: str, key: str, file: str) -> tuple[str, int] | None:
+    """``HOST:PORT`` -> (host, port); "" -> None (off). Port 0 = any free port (tests)."""
+    if value == "":
+        return None
+    host, sep, port = value.rpartition(":")
+    host = host.strip("[]")
+    if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise ConfigError(f"must be HOST:PORT (e.g. \"127.0.0.1:8080\") or \"\" for off; got "
+                          f"{value!r}", file=file, key=key)
+    if any(c.isspace() for c in host) or "/" in host:
+        raise ConfigError(f"not a host name or address: {host!r}", file=file, key=key)
+    return host, int(port)
+
+
+@dataclass(frozen=True)
 class Config:
     source: str = "<defaults>"
     loop: LoopConfig = field(default_factory=LoopConfig)
@@ -131,6 +158,8 @@ class Config:
     devices: tuple = ()                      # tuple[DeviceConfig, ...]
     status: StatusConfig = field(default_factory=StatusConfig)
     sim: SimConfig = field(default_factory=SimConfig)
+    console: ConsoleConfig = field(default_factory=ConsoleConfig)
+    foxglove: FoxgloveConfig = field(default_factory=FoxgloveConfig)
 
     def device(self, name: str) -> DeviceConfig | None:
         for d in self.devices:
@@ -258,7 +287,8 @@ def parse_config(data: Mapping[str, Any], file: str = "<config>") -> Config:
             raise ConfigError(f"unknown section (known: {', '.join(sorted(known))})",
                               file=file, key=k)
     for name, cls in (("loop", LoopConfig), ("gate", GateConfig), ("grid", GridConfig),
-                      ("status", StatusConfig), ("sim", SimConfig)):
+                      ("status", StatusConfig), ("sim", SimConfig),
+                      ("console", ConsoleConfig), ("foxglove", FoxgloveConfig)):
         if name in data:
             sections[name] = build_section(cls, data[name], name, file)
     if "zones" in data:
@@ -299,6 +329,8 @@ def _parse_perception(data, file) -> PerceptionConfig:
 
 
 def _cross_check(cfg: Config, file: str) -> None:
+    parse_listen(cfg.console.listen, "console.listen", file)
+    parse_listen(cfg.foxglove.listen, "foxglove.listen", file)
     g = cfg.grid
     if g.x_max_m <= g.x_min_m or g.y_max_m <= g.y_min_m:
         raise ConfigError("needs x_max_m > x_min_m and y_max_m > y_min_m", file=file, key="grid")

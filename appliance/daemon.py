@@ -99,6 +99,7 @@ class Daemon:
         self.day_night = None
         self._status_state = None
         self._status_t = 0.0
+        self.console = None
 
     # -------------------------------------------------------------------------------------
     def start(self) -> None:
@@ -132,6 +133,9 @@ class Daemon:
         if self.serve_status:
             self.status_server = StatusServer(self.status_socket, self.status, self.handle)
             self.status_server.start()
+            from appliance.console import ConsoleService    # web console, Foxglove: never fatal
+            self.console = ConsoleService(self)
+            self.console.start()
         log.info("fieldguard up: mode=%s devices=%s pipelines=%s status=%s", self.mode,
                  ",".join(self.devices), ",".join(p.name for p in self.pipelines),
                  self.status_server.path if self.status_server else "-")
@@ -172,6 +176,8 @@ class Daemon:
             doc["incidents"] = list(self.recorder.incidents)[-5:]
         if self.day_night is not None:
             doc["day_night"] = self.day_night.status()
+        if self.console is not None:
+            doc["console"] = self.console.info()
         return doc
 
     # -- requests on the status socket ---------------------------------------------------------
@@ -221,6 +227,8 @@ class Daemon:
             self.recorder.close()
         for dev in self.devices.values():
             dev.close()
+        if self.console is not None:
+            self.console.stop()
         if self.status_server is not None:
             self.status_server.stop()
         self.notifier.close()
