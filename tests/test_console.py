@@ -247,3 +247,98 @@ def test_tap_hands_over_at_the_bounded_rate_and_never_queues():
     assert tap._slot is not None and tap._stop_slot is None
     tap.on_cycle(_Res(n, GateState.STOP))            # entering STOP is always handed over
     assert tap.handed <= 4 and tap._stop_slot is not None
+
+
+# -- a real browser -------------------------------------------------------------------------------
+CHROMIUM, CHROMEDRIVER = "/usr/bin/chromium", "/usr/bin/chromedriver"
+
+
+def _browser():
+    import os
+    import tempfile
+    from conftest import missing_tool
+    if not (os.path.exists(CHROMIUM) and os.path.exists(CHROMEDRIVER)):
+        missing_tool("chromium and chromium-driver (Debian) are not installed")
+    try:
+        from selenium import webdriver
+        from selenium.webdriver.chrome.service import Service
+    except ImportError:
+        missing_tool("selenium is not installed (test extra)")
+    o = webdriver.ChromeOptions()
+    o.binary_location = CHROMIUM
+    for f in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+              "--disable-background-networking", "--disable-component-update", "--disable-sync",
+              "--disable-dev-shm-usage", "--window-size=1400,1200"):
+        o.add_argument(f)
+    o.add_argument("--user-data-dir=" + tempfile.mkdtemp(prefix="fg-chromium-"))
+    return webdriver.Chrome(service=Service(CHROMEDRIVER), options=o)
+
+
+def test_browser_shows_state_and_device_health_of_fieldguard_run_sim(tmp_path):
+    """`fieldguard run --sim` in its own process, its console on a free loopback port, the page
+    opened in headless chromium: the banner shows the box's state and reason, the device table
+    each device's health as `status` reports it."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+    from appliance.status import read_status
+    root = Path(__file__).resolve().parents[1]
+    conf = tmp_path / "box.toml"
+    conf.write_text('[console]\nlisten = "127.0.0.1:0"\n')
+    sock = str(tmp_path / "status.sock")
+    proc = subprocess.Popen([sys.executable, "-m", "appliance.cli", "run", "--sim", "--config",
+                             str(conf), "--socket", sock, "--duration", "120"], cwd=root,
+                            stdout=subprocess.DEVNULL, stderr=open(tmp_path / "daemon.log", "w"))
+    driver = None
+    try:
+        t0 = time.monotonic()
+        while True:
+            try:
+                st = read_status(sock)
+                if st.get("cycles", 0) >= 3 and st.get("console", {}).get("console"):
+                    break
+            except (ConnectionError, OSError, ValueError):
+                pass
+            assert proc.poll() is None, (tmp_path / "daemon.log").read_text()
+            assert time.monotonic() - t0 < 60, "the daemon did not come up"
+            time.sleep(0.3)
+        url = st["console"]["console"]["url"]
+        driver = _browser()
+        driver.get(url)
+        t0 = time.monotonic()
+        while True:            # the page polls once a second; the state may move meanwhile
+            shown = driver.find_element("id", "state").text
+            reason = driver.find_element("id", "reason").text
+            st = read_status(sock)
+            if shown == st["state"] and reason == st["reason"]:
+                break
+            assert time.monotonic() - t0 < 30, (shown, reason, st["state"], st["reason"])
+            time.sleep(0.3)
+        assert shown in ("STOP", "SLOW", "CLEAR")
+        banner = driver.find_element("id", "banner")
+        assert banner.get_attribute("class") == f"state-{shown}"
+        assert int(driver.execute_script(
+            "return parseInt(getComputedStyle(document.getElementById('state')).fontSize)")) >= 64
+        rows = {}
+        t0 = time.monotonic()
+        while set(rows) != set(st["devices"]):
+            rows = {r.get_attribute("data-device"): r.find_elements("tag name", "td")
+                    for r in driver.find_elements("css selector", "#devices tbody tr")}
+            assert time.monotonic() - t0 < 10
+        for name, h in read_status(sock)["devices"].items():
+            assert rows[name][2].text == h["state"] == "ok"
+            assert rows[name][3].text.endswith(" s")
+        # the grid picture loaded (naturalWidth > 0 only for a decoded image)
+        t0 = time.monotonic()
+        while not driver.execute_script("return document.getElementById('grid').naturalWidth"):
+            assert time.monotonic() - t0 < 10
+            time.sleep(0.2)
+        shot = Path(os.environ.get("FIELDGUARD_CONSOLE_SHOT", tmp_path / "console.png"))
+        assert driver.save_screenshot(str(shot)) and shot.stat().st_size > 10_000
+    finally:
+        if driver is not None:
+            driver.quit()
+        proc.terminate()
+        proc.wait(timeout=20)
+    assert proc.returncode == 0
