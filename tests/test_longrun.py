@@ -165,7 +165,7 @@ def test_plateau_verdict():
 
 
 def test_coverage_scene_lanes_and_obstacles():
-    sc = build_scene("stubble-coverage", 0)
+    sc = build_scene("stubble-coverage-classic", 0)
     length, spacing, lanes = COVERAGE_LANES
     ys = np.unique(np.round(sc.path[:, 1][np.abs(sc.path[:, 1] / spacing
                                                  - np.round(sc.path[:, 1] / spacing)) < 1e-9]))
@@ -180,5 +180,5 @@ def test_coverage_scene_lanes_and_obstacles():
     assert 0 < len(lanes_with) < lanes                    # obstacles on some lanes, not all
     assert all(30.0 <= o.x <= length - 30.0 for o in obs)
     assert all(o.x >= 60.0 for o in on_lane if round(o.y / spacing) == 0)
-    assert build_scene("stubble-coverage", 0).world.obstacles[0].x == obs[0].x   # seeded
+    assert build_scene("stubble-coverage-classic", 0).world.obstacles[0].x == obs[0].x   # seeded
     assert math.isclose(sc.cruise_mps, build_scene("stubble-day", 0).cruise_mps)

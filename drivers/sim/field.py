@@ -96,14 +96,24 @@ class SimField:
             el = math.radians(rng.uniform(35, 60))
             az = rng.uniform(-math.pi, math.pi)
             sun = (math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el))
-            self.lighting = Lighting("day", sun)
+            if self.scene.sun is not None:
+                sun = self.scene.sun
+            self.lighting = Lighting("day", sun, cloud=self.scene.cloud, dusk=self.scene.dusk,
+                                     wind_mps=self.scene.wind_mps)
         else:
             self.lighting = Lighting(self.scene.illumination)
+        self._advance_world()
 
     # ---- the loop -------------------------------------------------------------------------
     def step(self, dt_s: float, command: GateState | None = None) -> None:
         """Advance the vehicle by dt_s under the gate's command (None keeps the last one)."""
         self.vehicle.step(dt_s, command)
+        self._advance_world()
+
+    def _advance_world(self) -> None:
+        """The world's clock follows the vehicle's; walkers walk (their footprints move)."""
+        for k in self.world.advance(self.vehicle.time_s, self.vehicle.s):
+            self.vehicle.refresh_footprint(k)
 
     def stats(self) -> dict:
         return self.vehicle.stats()
@@ -275,6 +285,13 @@ class SimField:
                         "y_m": round(float(p[1]), 4), "z_m": round(float(p[2]), 4),
                         "length_m": o.length_m, "width_m": o.width_m, "height_m": o.height_m,
                         "yaw_deg": round(yaw_rel, 2)})
+            if o.moving:
+                # a walker: its ground velocity (not relative to the vehicle) in the level
+                # vehicle frame (x forward, y left)
+                vx, vy = o.velocity_now(self.world.time_s)
+                c, sn = math.cos(yaw), math.sin(yaw)
+                out[-1]["vx_mps"] = round(vx * c + vy * sn, 3)
+                out[-1]["vy_mps"] = round(-vx * sn + vy * c, 3)
         return out
 
     # ---- pictures -----------------------------------------------------------------------------

@@ -43,6 +43,9 @@ class Lighting:
     mode: str                                   # "day" | "night-strobe" | "greenhouse"
     sun: tuple[float, float, float] = (0.5, 0.3, 0.81)   # unit vector towards the sun (world)
     strobe_power: float = 30.0
+    cloud: float = 0.0                          # 0 clear .. 1 overcast (softer, fewer shadows)
+    dusk: float = 0.0                           # 0 day .. 1 dusk (dimmer, warmer)
+    wind_mps: tuple[float, float] = (0.0, 0.0)  # cloud shadows drift with the wind
 
 
 class _Timer:
@@ -239,8 +242,13 @@ def render_view(world: World, light: Lighting, centre: np.ndarray, r_opt2world: 
         sun = np.asarray(light.sun, f32)
         lam = np.maximum(nx * sun[0] + ny * sun[1] + nz * sun[2], 0)
         lit = _shadows(world, sun, px, py, pz, pm)
-        shade = f32(0.42) + f32(0.75) * lam * lit
-        rad = alb * shade[:, None]
+        if light.cloud > 0 or light.dusk > 0:
+            lit = lit * _cloud_light(world, light, px, py)
+            direct = (f32(0.75) * lam * lit)[:, None] * _dusk_tint(light.dusk)[None, :]
+            rad = alb * (f32(0.42 + 0.08 * light.cloud) * f32(1 - 0.5 * light.dusk) + direct)
+        else:
+            shade = f32(0.42) + f32(0.75) * lam * lit
+            rad = alb * shade[:, None]
     elif light.mode == "night-strobe":
         lx, ly, lz = f32(C[0]) - px, f32(C[1]) - py, f32(C[2]) - pz
         r2_ = lx * lx + ly * ly + lz * lz
@@ -289,6 +297,28 @@ def render_view(world: World, light: Lighting, centre: np.ndarray, r_opt2world: 
     z = tw / denom
     _T("end")
     return View(out, z.astype(f32), mw.astype(np.int16), lw)
+
+
+CLOUD_CELL_M = 35.0        # size of the cloud shadows' pattern
+
+
+def _cloud_light(world: World, light: Lighting, px, py) -> np.ndarray:
+    """The share of direct sun that gets through the clouds at ground points: drifting cloud
+    shadows (value noise moved by the wind with the world's clock) thinned by the cover."""
+    from .world import value_noise
+    f32 = np.float32
+    if light.cloud <= 0:
+        return np.ones(px.shape, f32)
+    t = f32(world.time_s)
+    n = value_noise(px - f32(light.wind_mps[0]) * t, py - f32(light.wind_mps[1]) * t,
+                    CLOUD_CELL_M, world._salt ^ 0xC10D)
+    shadow = np.clip((n - f32(1.0 - light.cloud)) * f32(5.0), 0, 1)
+    return (f32(1.0) - f32(0.85) * shadow).astype(f32)
+
+
+def _dusk_tint(dusk: float) -> np.ndarray:
+    """BGR multiplier of the direct sun: dimmer and warmer towards dusk."""
+    return np.array([1 - 0.75 * dusk, 1 - 0.5 * dusk, 1 - 0.3 * dusk], np.float32)
 
 
 def _shadows(world: World, sun: np.ndarray, px, py, pz, pm) -> np.ndarray:

@@ -139,6 +139,10 @@ class Vehicle:
         inside = o.height(x.astype(np.float32), y.astype(np.float32)) > 0
         return np.stack([x[inside], y[inside]], 1)
 
+    def refresh_footprint(self, k: int) -> None:
+        """Obstacle k moved (a walker): its footprint points follow."""
+        self._footprints[k] = self._footprint_points(self.scene.world.obstacles[k])
+
     def footprint_in_vehicle(self, k: int) -> np.ndarray:
         """Obstacle k's footprint points in the (level) vehicle frame, (N, 2)."""
         x, y, yaw = self.pose()

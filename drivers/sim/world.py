@@ -167,11 +167,50 @@ class Obstacle:
     texture: str | None = None        # "stubble" for the look-alike
     shiny: bool = False
     z0: float = 0.0                   # ground height at the footprint centre (set by the world)
+    # scene bookkeeping (scenes.py): where it was put and how it stands
+    tone: str = ""                    # "hi-vis" | "field-coloured" | "own" | "other" | "animal"
+    placement: str = ""               # "in-path" | "beside" | "between-lanes" | "headland" | "crossing"
+    pose: str = ""                    # "standing" | "crouching" | "lying" ("" for things)
+    # a walker (person or animal crossing): it stands at (x, y) until the vehicle's route
+    # distance reaches ``walk_trigger_s``, then walks at (vx_mps, vy_mps) for ``walk_time_s``,
+    # then stands again. vx = vy = 0: it never moves.
+    vx_mps: float = 0.0
+    vy_mps: float = 0.0
+    walk_trigger_s: float = 0.0
+    walk_time_s: float = 0.0
+
+    def __post_init__(self):
+        self.x_start, self.y_start = float(self.x), float(self.y)
+        self.walk_t0_s: float | None = None
+
+    @property
+    def moving(self) -> bool:
+        """A walker (it may be standing still just now)."""
+        return bool(self.vx_mps or self.vy_mps) and self.walk_time_s > 0
+
+    def velocity_now(self, time_s: float) -> tuple[float, float]:
+        """World (vx, vy) at time_s: its walking velocity while it walks, else 0."""
+        if not self.moving or self.walk_t0_s is None:
+            return 0.0, 0.0
+        if 0.0 <= time_s - self.walk_t0_s < self.walk_time_s:
+            return self.vx_mps, self.vy_mps
+        return 0.0, 0.0
 
     @property
     def radius(self) -> float:
         """Radius of a circle around the footprint (for culling)."""
         return 0.5 * math.hypot(self.length_m, self.width_m) + 0.02
+
+    def footprint_points(self, n: int = 11) -> np.ndarray:
+        """(N, 2) world points covering the footprint (an n x n grid, kept where it stands)."""
+        u = np.linspace(-0.5 * self.length_m, 0.5 * self.length_m, n)
+        v = np.linspace(-0.5 * self.width_m, 0.5 * self.width_m, n)
+        uu, vv = np.meshgrid(u, v)
+        c, s = math.cos(math.radians(self.yaw_deg)), math.sin(math.radians(self.yaw_deg))
+        x = (self.x + uu * c - vv * s).ravel()
+        y = (self.y + uu * s + vv * c).ravel()
+        inside = self.height(x.astype(np.float32), y.astype(np.float32)) > 0
+        return np.stack([x[inside], y[inside]], 1)
 
     def local(self, x, y):
         c, s = math.cos(math.radians(self.yaw_deg)), math.sin(math.radians(self.yaw_deg))
@@ -196,6 +235,11 @@ class Obstacle:
             cab = (u < f32(0.22 * L)) & (u > f32(-0.18 * L)) & (np.abs(v) <= f32(0.46 * W))
             h = np.where(cab, f32(H), f32(0.6 * H))
             return np.where(inside, h, f32(0.0))
+        if self.shape == "dome":
+            # a lying person, an animal: an elliptic footprint with a half-ellipsoid top
+            e = (u / f32(0.5 * L)) ** 2 + (v / f32(0.5 * W)) ** 2
+            return np.where(e <= 1.0, f32(H) * np.sqrt(np.maximum(f32(1.0) - e, f32(0.0)))
+                            + f32(0.25 * H), f32(0.0)).astype(f32) * f32(0.8)
         if self.shape in ("person", "person-crouching"):
             # stacked ellipses: body/shoulders, then the head
             e_body = (u / f32(0.5 * L)) ** 2 + (v / f32(0.5 * W)) ** 2
@@ -240,6 +284,8 @@ class Obstacle:
             cab = (u < 0.22 * self.length_m) & (u > -0.18 * self.length_m)
             col[cab & (zr > 0.62 * H) & (zr < 0.95 * H)] = c2     # windows
             col[zr < 0.4] = (0.08, 0.08, 0.08)                    # wheels / shadow under body
+        elif self.shape == "dome":
+            col[zr < 0.3 * H] = c2                               # legs / underside
         elif self.cls in ("drum", "barrel", "look-alike-drum"):
             hoop = (np.abs(zr - H / 3) < 0.025) | (np.abs(zr - 2 * H / 3) < 0.025)
             col[hoop] = c2 if self.texture is None else c1 * 0.8
@@ -275,15 +321,51 @@ class World:
     sky_bgr: tuple[float, float, float] = (0.95, 0.80, 0.62)
     horizon_bgr: tuple[float, float, float] = (0.93, 0.90, 0.85)
     max_terrain_m: float = 0.0               # upper bound of ground + stubble/bush height
+    # contour banks: (nx, ny, offset, height, sigma) rows: a ridge of height ``height`` and
+    # Gaussian half-width ``sigma`` along the line nx*x + ny*y = offset (n a unit vector)
+    banks: np.ndarray = field(default_factory=lambda: np.zeros((0, 5), np.float32))
+    # the stubble (defaults: the stubble-day field)
+    row_spacing_m: float = ROW_SPACING_M
+    tuft_spacing_m: float = TUFT_SPACING_M
+    stubble_height: float = 1.0              # scale of the tufts' heights
+    stubble_gap: float = 0.1                 # fraction of tuft places left empty
+    straw_bgr: tuple[float, float, float] = (0.40, 0.63, 0.78)
+    soil_bgr: tuple[float, float, float] = (0.33, 0.40, 0.50)
+    litter_bgr: tuple[float, float, float] = (0.42, 0.62, 0.74)
+    litter: float = 0.0                      # more (>0) or less (<0) straw litter on the soil
+    bush_x_range: tuple[float, float] | None = None   # greenhouse: bushes only for x in range
+    time_s: float = 0.0                      # the world's clock (walkers, cloud shadows)
 
     def __post_init__(self):
         self._salt = (self.seed * 2654435761 + 12345) & 0xFFFFFFFF
         amp = np.abs(self.waves[:, 3]).sum() if len(self.waves) else 0.0
-        top = 0.55 if self.kind == "stubble" else 1.35
+        amp += float(np.abs(self.banks[:, 3]).max()) if len(self.banks) else 0.0
+        top = 0.55 * max(self.stubble_height, 1.0) if self.kind == "stubble" else 1.35
         self.max_terrain_m = float(amp + top)
         self.ground_max_m = float(amp)
         for o in self.obstacles:
             o.z0 = float(self.ground(np.float32(o.x), np.float32(o.y)))
+
+    # ---- time ------------------------------------------------------------------------------
+    def advance(self, time_s: float, route_s: float) -> list[int]:
+        """Set the world's clock; walkers whose trigger the vehicle's route distance has passed
+        walk. Returns the indices of the obstacles that moved."""
+        self.time_s = float(time_s)
+        moved = []
+        for k, o in enumerate(self.obstacles):
+            if not o.moving:
+                continue
+            if o.walk_t0_s is None:
+                if route_s < o.walk_trigger_s:
+                    continue
+                o.walk_t0_s = self.time_s
+            tw = min(max(self.time_s - o.walk_t0_s, 0.0), o.walk_time_s)
+            x, y = o.x_start + o.vx_mps * tw, o.y_start + o.vy_mps * tw
+            if (x, y) != (o.x, o.y):
+                o.x, o.y = x, y
+                o.z0 = float(self.ground(np.float32(x), np.float32(y)))
+                moved.append(k)
+        return moved
 
     # ---- geometry --------------------------------------------------------------------------
     def ground(self, x, y):
@@ -292,20 +374,26 @@ class World:
         z = np.zeros(np.broadcast(x, y).shape, np.float32)
         for kx, ky, ph, a in self.waves:
             z += np.float32(a) * np.sin(x * np.float32(kx) + y * np.float32(ky) + np.float32(ph))
+        for nx, ny, off, hb, sg in self.banks:
+            d = (x * np.float32(nx) + y * np.float32(ny) - np.float32(off)) / np.float32(sg)
+            z += np.float32(hb) * np.exp(-d * d)
         return z
 
     def _tufts(self, x, y):
         """Stubble tuft height above the ground (0 between tufts)."""
         f32 = np.float32
-        k = np.floor((y - f32(self.row_offset_m)) / f32(ROW_SPACING_M) + f32(0.5))
-        j = np.floor(x / f32(TUFT_SPACING_M))
+        rs, ts = f32(self.row_spacing_m), f32(self.tuft_spacing_m)
+        k = np.floor((y - f32(self.row_offset_m)) / rs + f32(0.5))
+        j = np.floor(x / ts)
         h = hash2(k, j, self._salt ^ 0x51)
-        cx = (j + f32(0.5)) * f32(TUFT_SPACING_M) + (unit(h, 1) - f32(0.5)) * f32(0.05)
-        cy = k * f32(ROW_SPACING_M) + f32(self.row_offset_m) + (unit(h, 2) - f32(0.5)) * f32(0.08)
+        cx = (j + f32(0.5)) * ts + (unit(h, 1) - f32(0.5)) * f32(0.05)
+        cy = k * rs + f32(self.row_offset_m) + (unit(h, 2) - f32(0.5)) * f32(0.08)
         r = f32(0.045) + unit(h, 3) * f32(0.04)
         u4 = unit(h, 4)
         height = f32(0.14) + f32(0.26) * unit(h) + np.where(u4 > f32(0.92), f32(0.12), f32(0.0))
-        height = np.where(u4 < f32(0.1), f32(0.0), height)         # gaps in the row
+        if self.stubble_height != 1.0:
+            height = height * f32(self.stubble_height)
+        height = np.where(u4 < f32(self.stubble_gap), f32(0.0), height)   # gaps in the row
         d2 = ((x - cx) ** 2 + (y - cy) ** 2) / (r * r)
         prof = np.clip(f32(1.0) - d2, f32(0.0), f32(1.0))
         # stalks: every 2 cm cell of the clump has its own height -> a ragged, stalky top
@@ -340,6 +428,10 @@ class World:
                   (np.abs(x - cxl) < f32(0.22))
         hleaf = np.where(leaf_on, (f32(0.04) + f32(0.14) * leafy) *
                          (f32(1.0) - into_path / reach), f32(0.0))
+        if self.bush_x_range is not None:
+            inside = (x >= f32(self.bush_x_range[0])) & (x <= f32(self.bush_x_range[1]))
+            hbush = np.where(inside, hbush, f32(0.0))
+            hleaf = np.where(inside, hleaf, f32(0.0))
         return hbush, hleaf
 
     def terrain(self, x, y):
@@ -397,9 +489,10 @@ class World:
             grav = sample_texture("gravel", xm, ym, 0.004, fm)
             if self.kind == "stubble":
                 straw = sample_texture("grass", ym * 0.7 + 3.3, xm * 0.7, 0.003, fm)
-                soil = np.array([0.33, 0.40, 0.50], f32)          # BGR grey-brown soil
-                litter = np.array([0.42, 0.62, 0.74], f32)        # pale straw litter
-                w = np.clip((straw - 0.95) * 1.6 + (patch - 0.5) * 0.8, 0, 1)[:, None]
+                soil = np.array(self.soil_bgr, f32)               # BGR grey-brown soil
+                litter = np.array(self.litter_bgr, f32)           # pale straw litter
+                w = np.clip((straw - 0.95) * 1.6 + (patch - 0.5) * 0.8 + f32(self.litter),
+                            0, 1)[:, None]
                 c = soil * (1 - w) + litter * w
                 c = c * (0.75 + 0.25 * grav)[:, None] * (0.85 + 0.3 * fine)[:, None]
             else:
@@ -410,10 +503,10 @@ class World:
         if m.any():
             xm, ym, zm, fm = x[m], y[m], z[m], footprint[m]
             g = self.ground(xm, ym)
-            rel = np.clip((zm - g) / 0.4, 0, 1)
+            rel = np.clip((zm - g) / (0.4 * self.stubble_height), 0, 1)
             streak = sample_texture("grass", (xm - ym) * 0.9, (zm - g) * 0.12, 0.002, fm)
             var = value_noise(xm, ym, 1.5, self._salt ^ 0xB)
-            straw = np.array([0.40, 0.63, 0.78], f32)             # BGR straw (sorghum stubble)
+            straw = np.array(self.straw_bgr, f32)                 # BGR straw (sorghum stubble)
             c = straw * (0.55 + 0.45 * rel)[:, None] * (0.6 + 0.4 * streak)[:, None]
             c = c * (0.85 + 0.3 * var)[:, None]
             out[m] = c

@@ -1,0 +1,192 @@
+"""drivers/sim scenes drawn from distributions: the campaign API, reproducibility per seed,
+variation across seeds, walkers, terrain with pitch and roll following the ground."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from drivers.sim import SimField
+from drivers.sim.scenes import SCENE_KINDS, SCENES, build_scene
+from hal.types import GateState
+
+COVERAGE = ("stubble-coverage", "stubble-coverage-night", "greenhouse-coverage")
+
+
+def _sig(sc):
+    w = sc.world
+    return (repr(sc.params), [(o.id, o.cls, o.shape, o.placement, o.pose, round(o.x, 6),
+                               round(o.y, 6), o.colour) for o in w.obstacles],
+            w.waves.tobytes(), w.banks.tobytes())
+
+
+def test_kinds_are_listed_with_descriptions_and_old_names_still_work():
+    assert SCENES is SCENE_KINDS
+    assert set(SCENE_KINDS) >= {"stubble-day", "stubble-night", "greenhouse", "stubble-empty",
+                                "stubble-lookalike", "stubble-coverage-classic", *COVERAGE}
+    assert all(isinstance(v, str) and len(v) > 20 for v in SCENE_KINDS.values())
+    with pytest.raises(ValueError, match="greenhouse-coverage"):
+        build_scene("moon-base", 1)
+
+
+@pytest.mark.parametrize("kind", COVERAGE)
+def test_same_seed_same_scene_other_seed_differs(kind):
+    assert _sig(build_scene(kind, 7)) == _sig(build_scene(kind, 7))
+    assert _sig(build_scene(kind, 7)) != _sig(build_scene(kind, 8))
+
+
+def test_day_and_night_coverage_share_the_field_and_obstacles():
+    d, n = build_scene("stubble-coverage", 3), build_scene("stubble-coverage-night", 3)
+    assert _sig(d)[1:] == _sig(n)[1:]
+    assert d.illumination == "day" and n.illumination == "night-strobe"
+    assert d.sun is not None and n.sun is None
+
+
+def test_the_distributions_vary_with_the_seed():
+    seeds = range(20)
+    scs = [build_scene("stubble-coverage", s) for s in seeds]
+    for key, lo, hi in (("row_spacing_m", 0.5, 1.0), ("stubble_height", 0.5, 1.4),
+                        ("sun_elevation_deg", 6.0, 70.0), ("undulation_m", 0.05, 0.45)):
+        v = np.array([sc.params[key] for sc in scs])
+        assert v.min() >= lo and v.max() <= hi
+        assert np.ptp(v) > 0.4 * (hi - lo), (key, v)          # the range is used
+    assert len({sc.params["straw_bgr"] for sc in scs}) == 20
+    assert any(sc.params["cloud"] == 0 for sc in scs) and any(sc.params["cloud"] > 0.5 for sc in scs)
+    assert any(sc.params["dusk"] > 0 for sc in scs)
+    assert any(len(sc.world.banks) == 0 for sc in scs) and any(len(sc.world.banks) >= 2 for sc in scs)
+    obs = [o for sc in scs for o in sc.obstacles]
+    classes = {o.cls for o in obs}
+    assert classes >= {"person", "person-crouching", "person-lying", "drum", "crate", "vehicle"}
+    assert classes & {"dog", "sheep", "cattle", "kangaroo"}
+    assert {o.placement for o in obs} == {"in-path", "beside", "between-lanes", "headland",
+                                          "crossing"}
+    assert {o.tone for o in obs if o.cls.startswith("person")} >= {"hi-vis", "field-coloured"}
+    heights = [o.height_m for o in obs if o.cls == "person"]
+    assert min(heights) < 1.6 and max(heights) > 1.85
+    g = [build_scene("greenhouse-coverage", s) for s in seeds]
+    assert np.ptp([sc.params["path_half_width_m"] for sc in g]) > 0.1
+    assert {o.placement for sc in g for o in sc.obstacles} >= {"in-path", "beside", "headland"}
+
+
+def test_route_lanes_headlands_and_in_path_obstacles():
+    sc = build_scene("stubble-coverage", 5)
+    assert sc.route is sc.path and sc.route_s[0] == 0.0
+    assert sc.route_length_m == pytest.approx(sc.route_s[-1])
+    assert len(sc.lanes) == 14
+    # a lane's middle is "lane", a turn is "headland", lane ends count as headland
+    a, b = sc.lanes[3]
+    assert sc.zone_at((a + b) / 2) == "lane" and sc.lane_at((a + b) / 2) == 3
+    assert sc.zone_at(b + 1.0) == "headland" and sc.lane_at(b + 1.0) is None
+    assert sc.zone_at(a + 0.5 * sc.headland_m) == "headland"
+    assert sc.route_s_of(*sc.path[100]) == pytest.approx(sc.route_s[100], abs=1e-6)
+    ids = set(sc.in_path_ids())
+    for o in sc.obstacles:
+        if o.placement in ("in-path", "crossing"):
+            assert o.id in ids, o
+        if o.placement in ("beside", "between-lanes"):
+            assert o.id not in ids, o
+        assert sc.obstacle_class(o.id) == o.cls
+    # headland obstacles are where the route is in a headland
+    for o in sc.obstacles:
+        if o.placement == "headland":
+            assert sc.zone_of_point(o.x, o.y) == "headland"
+    # the vehicle hits exactly... at least one in-path obstacle if it never stops
+    f = SimField("stubble-coverage", 5, sensors=())
+    for _ in range(1200):
+        f.step(0.1, GateState.CLEAR)
+    assert set(f.stats()["obstacles_hit"]) <= ids and f.stats()["collisions"] >= 1
+
+
+def _walker_field(kind="stubble-coverage"):
+    for seed in range(50):
+        sc = build_scene(kind, seed)
+        w = [o for o in sc.obstacles if o.moving]
+        if w:
+            return seed, w[0]
+    raise AssertionError("no walker in 50 seeds")
+
+
+def test_walkers_walk_when_the_vehicle_comes_and_truth_follows_them():
+    seed, w0 = _walker_field()
+    f = SimField("stubble-coverage", seed, sensors=("stereo",), stereo_scale=0.25)
+    k = next(i for i, o in enumerate(f.world.obstacles) if o.id == w0.id)
+    o = f.world.obstacles[k]
+    x0, y0 = o.x, o.y
+    f.vehicle.s = o.walk_trigger_s - 5.0
+    f.step(0.1)
+    assert (o.x, o.y) == (x0, y0)                              # not yet
+    f.vehicle.s = o.walk_trigger_s
+    f.step(0.1)
+    t0 = f.world.time_s
+    for _ in range(20):
+        f.vehicle.speed = 0.0                                  # hold the vehicle: watch it walk
+        f.step(0.1, GateState.STOP)
+    dt = f.world.time_s - t0
+    assert o.x - x0 == pytest.approx(o.vx_mps * dt, abs=1e-6)
+    assert o.y - y0 == pytest.approx(o.vy_mps * dt, abs=1e-6)
+    assert o.z0 == pytest.approx(float(f.world.ground(np.float32(o.x), np.float32(o.y))), abs=1e-6)
+    # the vehicle's footprint test moved with it
+    fp = f.vehicle._footprints[k]
+    assert np.hypot(fp[:, 0].mean() - o.x, fp[:, 1].mean() - o.y) < 0.05
+    # truth: where it is now, with its velocity in the vehicle frame
+    t = [d for d in f.truth() if d["id"] == o.id]
+    if t:
+        Rwv, O = f.vehicle.world_from_vehicle()
+        p = Rwv.T @ (np.array([o.x, o.y, o.z0]) - O)
+        assert t[0]["x_m"] == pytest.approx(p[0], abs=1e-3)
+        assert t[0]["y_m"] == pytest.approx(p[1], abs=1e-3)
+        yaw = f.vehicle.pose()[2]
+        assert math.hypot(t[0]["vx_mps"], t[0]["vy_mps"]) == pytest.approx(
+            math.hypot(o.vx_mps, o.vy_mps), abs=2e-3)
+        assert t[0]["vx_mps"] == pytest.approx(o.vx_mps * math.cos(yaw) + o.vy_mps * math.sin(yaw),
+                                               abs=2e-3)
+    # once across it stands still
+    for _ in range(int(o.walk_time_s * 10) + 5):
+        f.step(0.1, GateState.STOP)
+    assert o.velocity_now(f.world.time_s) == (0.0, 0.0)
+    assert math.hypot(o.x - o.x_start, o.y - o.y_start) == pytest.approx(
+        math.hypot(o.vx_mps, o.vy_mps) * o.walk_time_s, rel=1e-6)
+
+
+def test_pitch_and_roll_follow_the_ground_over_a_contour_bank():
+    def steep_bank(s):
+        for b in build_scene("stubble-coverage", s).world.banks:
+            nx, ny, off, hb, sg = (float(v) for v in b)
+            if 10.0 < off / nx < 240.0 and hb * abs(nx) / sg > 0.12:
+                return b
+        return None
+    seed = next(s for s in range(100) if steep_bank(s) is not None)
+    nx, ny, off, hb, sg = steep_bank(seed)
+    f = SimField("stubble-coverage", seed, sensors=())
+    sc = f.scene
+    sc.bounce_deg = 0.0                                        # the ground alone
+    xb = float(off / nx)                                       # where it crosses lane 0 (y = 0)
+    pitches = []
+    for s in np.arange(max(xb - 8.0, 1.0), min(xb + 8.0, 249.0), 0.25):
+        f.vehicle.s = float(s)
+        roll, pitch, z = f.vehicle.attitude()
+        x, y, yaw = f.vehicle.pose()
+        wb, tr = sc.wheelbase_m, sc.track_m / 2
+        g = lambda px, py: float(sc.world.ground(np.float32(px), np.float32(py)))  # noqa: E731
+        front = (g(x + wb, tr) + g(x + wb, -tr)) / 2
+        rear = (g(x, tr) + g(x, -tr)) / 2
+        assert pitch == pytest.approx(math.atan2(rear - front, wb), abs=1e-6)
+        left, right = (g(x, tr) + g(x + wb, tr)) / 2, (g(x, -tr) + g(x + wb, -tr)) / 2
+        assert roll == pytest.approx(math.atan2(left - right, 2 * tr), abs=1e-6)
+        pitches.append(pitch)
+        st = f.vehicle_state(0, 0)
+        assert (st.pitch_rad, st.roll_rad) == (pitch, roll)
+    # climbing the bank: nose up (negative pitch), then nose down
+    assert min(pitches) < -math.radians(2.0) and max(pitches) > math.radians(2.0)
+
+
+def test_greenhouse_placements_agree_with_the_geometry():
+    for seed in range(10):
+        sc = build_scene("greenhouse-coverage", seed)
+        ids = set(sc.in_path_ids())
+        for o in sc.obstacles:
+            if o.placement in ("in-path", "crossing"):
+                assert o.id in ids
+            elif o.placement == "beside":
+                assert o.id not in ids
