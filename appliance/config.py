@@ -79,6 +79,54 @@ class GridConfig:
 
 
 @dataclass(frozen=True)
+class SourceWeights:
+    """Log-odds each cue adds to a track per frame at full strength (docs/tracking.md)."""
+
+    laser: float = _f(1.0, lo=0.0, hi=10.0)
+    geometry: float = _f(0.7, lo=0.0, hi=10.0, doc="height above ground from stereo or depth")
+    novelty: float = _f(0.5, lo=0.0, hi=10.0)
+    cue: float = _f(0.5, lo=0.0, hi=10.0, doc="the learned cue")
+    colour: float = _f(0.7, lo=0.0, hi=10.0, doc="RGB-D colour class")
+    texture: float = _f(0.4, lo=0.0, hi=10.0)
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    """Obstacle tracks in the world (odometry) frame and the decision on them (docs/tracking.md).
+    ``enabled = false`` is the cell-based decision of the papers' reproduction tables."""
+
+    enabled: bool = _f(False, doc="decide on confirmed tracks (false: on occupied cells)")
+    cluster_gap_m: float = _f(0.3, lo=0.0, hi=3.0, doc="cells this close join one candidate")
+    min_cells: int = _f(1, lo=1, hi=1000, doc="smallest candidate, in cells")
+    support_cells: float = _f(3.0, lo=0.1, hi=1000.0,
+                              doc="cells at which a source's strength is 1 - 1/e")
+    gate_m: float = _f(1.0, lo=0.05, hi=10.0, doc="association gate beyond the footprints")
+    meas_noise_m: float = _f(0.15, lo=0.01, hi=5.0)
+    accel_noise_mps2: float = _f(2.0, lo=0.01, hi=50.0)
+    source_cap_frames: float = _f(3.0, lo=0.1, hi=100.0,
+                                  doc="one source's log-odds are capped at weight x this")
+    confirm_logodds: float = _f(2.0, lo=0.0, hi=100.0)
+    release_logodds: float = _f(0.5, lo=0.0, hi=100.0, doc="a confirmed track below this ends")
+    miss_logodds: float = _f(0.5, lo=0.0, hi=100.0, doc="taken from each source on a miss")
+    confirm_frames_min: int = _f(2, lo=1, hi=100, doc="frames for a near, large candidate")
+    confirm_frames_max: int = _f(4, lo=1, hi=100, doc="frames for a far, small candidate")
+    near_m: float = _f(6.0, lo=0.0, hi=100.0)
+    far_m: float = _f(18.0, lo=0.1, hi=100.0)
+    large_m: float = _f(0.8, lo=0.01, hi=20.0, doc="footprint (longest side) counted as large")
+    small_m: float = _f(0.2, lo=0.0, hi=20.0)
+    coast_s: float = _f(0.5, lo=0.0, hi=10.0, doc="a confirmed track is kept this long unseen")
+    tentative_coast_s: float = _f(0.15, lo=0.0, hi=10.0)
+    max_speed_mps: float = _f(2.5, lo=0.0, hi=50.0, doc="faster over ground: not an obstacle")
+    comoving_mps: float = _f(0.4, lo=0.0, hi=10.0,
+                             doc="moving with the vehicle within this: an artefact, not confirmed")
+    speed_check_frames: int = _f(4, lo=1, hi=100, doc="hits before the speed checks apply")
+    predict_min_mps: float = _f(0.4, lo=0.0, hi=10.0,
+                                doc="slower than this: not predicted (noise on a still object)")
+    max_tracks: int = _f(300, lo=1, hi=100000)
+    weights: SourceWeights = field(default_factory=SourceWeights)
+
+
+@dataclass(frozen=True)
 class LaserPipelineConfig:
     min_range_m: float = _f(0.3, lo=0.0)
     max_range_m: float = _f(30.0, lo=0.1)
@@ -158,6 +206,7 @@ class Config:
     devices: tuple = ()                      # tuple[DeviceConfig, ...]
     status: StatusConfig = field(default_factory=StatusConfig)
     sim: SimConfig = field(default_factory=SimConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
     console: ConsoleConfig = field(default_factory=ConsoleConfig)
     foxglove: FoxgloveConfig = field(default_factory=FoxgloveConfig)
 
@@ -288,6 +337,7 @@ def parse_config(data: Mapping[str, Any], file: str = "<config>") -> Config:
                               file=file, key=k)
     for name, cls in (("loop", LoopConfig), ("gate", GateConfig), ("grid", GridConfig),
                       ("status", StatusConfig), ("sim", SimConfig),
+                      ("tracking", TrackingConfig),
                       ("console", ConsoleConfig), ("foxglove", FoxgloveConfig)):
         if name in data:
             sections[name] = build_section(cls, data[name], name, file)
@@ -334,6 +384,15 @@ def _cross_check(cfg: Config, file: str) -> None:
     g = cfg.grid
     if g.x_max_m <= g.x_min_m or g.y_max_m <= g.y_min_m:
         raise ConfigError("needs x_max_m > x_min_m and y_max_m > y_min_m", file=file, key="grid")
+    t = cfg.tracking
+    if t.far_m <= t.near_m or t.large_m <= t.small_m:
+        raise ConfigError("needs far_m > near_m and large_m > small_m", file=file, key="tracking")
+    if t.confirm_frames_max < t.confirm_frames_min:
+        raise ConfigError("confirm_frames_max must be >= confirm_frames_min", file=file,
+                          key="tracking")
+    if t.release_logodds > t.confirm_logodds:
+        raise ConfigError("release_logodds must not exceed confirm_logodds", file=file,
+                          key="tracking")
     if cfg.perception.laser.max_range_m <= cfg.perception.laser.min_range_m:
         raise ConfigError("max_range_m must exceed min_range_m", file=file,
                           key="perception.laser")

@@ -255,19 +255,152 @@ def _check_sensors(pipe, name: str, info: RunInfo) -> set[str]:
     return set(alts[0]) - {"vehicle"}
 
 
-def evaluate_run(path: str | os.PathLike, pipeline: str, config=None,
-                 progress: Callable[[int, int], None] | None = None) -> dict:
-    """Run ``pipeline`` over every frame of the run at ``path`` in order, fuse its points into
-    the grid as the daemon does, and score the occupied cells of every frame with truth.
+# the box's perception for each sensor when no pipeline is named and no config chooses
+DEFAULT_PIPELINES = {"stereo": "stereo-novelty", "rgbd": "rgbd", "laser": "laser"}
 
-    ``config``: a Config, a path to a config file, or None for the defaults. A frame whose
-    required sensor file is missing feeds the grid no points (as a stale sensor would)."""
+
+def default_pipelines(info: RunInfo, cfg=None, configured: bool = False) -> list[str]:
+    """What ``fieldguard eval RUN`` runs without ``--pipeline``: with a config file, its
+    ``[perception] pipelines`` that the run has the sensors for; without one (or when none of
+    them fits), the box's default perception for each sensor the run has: stereo-novelty for
+    stereo, rgbd for RGB-D, laser for a laser."""
+    from appliance.perception import pipeline_class
+    have = set(info.sensors) | {"vehicle"}
+    if configured and cfg is not None:
+        names = []
+        for n in cfg.perception.pipelines:
+            if n == "fused":
+                continue
+            if set(getattr(pipeline_class(n), "requires", ())) <= have:
+                names.append(n)
+        if names:
+            return names
+    names = [DEFAULT_PIPELINES[s] for s in ("stereo", "rgbd", "laser") if s in info.sensors]
+    if not names:
+        raise ConfigError(f"run {info.name!r} has no sensor a pipeline can use")
+    return names
+
+
+def _rect_intersects(ob: dict, rect: dict) -> bool:
+    """Does the obstacle's footprint (length x width turned by yaw_deg) meet the zone rectangle
+    {x_min_m, x_max_m, half_width_m}? (Separating axes of the two rectangles.)"""
+    yaw = math.radians(float(ob.get("yaw_deg", 0.0)))
+    c, s = math.cos(yaw), math.sin(yaw)
+    hl, hw = float(ob["length_m"]) / 2, float(ob["width_m"]) / 2
+    x, y = float(ob["x_m"]), float(ob["y_m"])
+    corners = np.array([[x + c * a - s * b, y + s * a + c * b]
+                        for a in (-hl, hl) for b in (-hw, hw)])
+    zx0, zx1, zh = rect["x_min_m"], rect["x_max_m"], rect["half_width_m"]
+    if corners[:, 0].max() < zx0 or corners[:, 0].min() > zx1:
+        return False
+    if corners[:, 1].max() < -zh or corners[:, 1].min() > zh:
+        return False
+    zc = np.array([[zx0, -zh], [zx0, zh], [zx1, -zh], [zx1, zh]])
+    for ax in (np.array([c, s]), np.array([-s, c])):
+        p_ob = corners @ ax
+        p_z = zc @ ax
+        if p_ob.max() < p_z.min() or p_z.max() < p_ob.min():
+            return False
+    return True
+
+
+def decision_record(index: int, stamp_ns: int, out, picture, rects, cause: str) -> dict:
+    """One line of ``fieldguard eval --out`` (docs/run-format.md "The box's decisions")."""
+    cells = np.asarray(picture.cells_xy, dtype=np.float64).reshape(-1, 2)
+    return {
+        "index": int(index), "stamp_ns": int(stamp_ns),
+        "cells": [[round(float(x), 3), round(float(y), 3)] for x, y in cells],
+        "state": out.state.value, "reason": out.reason,
+        "stop_zone": {k: round(float(v), 3) for k, v in rects[0].items()},
+        "slow_zone": {k: round(float(v), 3) for k, v in rects[1].items()},
+        "objects": [
+            {"id": t.id, "x_m": round(t.x_m, 3), "y_m": round(t.y_m, 3),
+             "length_m": round(t.length_m, 3), "width_m": round(t.width_m, 3),
+             "height_m": round(t.height_m, 3), "vx_mps": round(t.vx_mps, 3),
+             "vy_mps": round(t.vy_mps, 3), "confidence": round(t.confidence, 4),
+             "sources": list(t.sources), "coasting": t.coasting}
+            for t in picture.objects],
+        # beyond the contract: what the state is for (boot, fault, no-picture, obstacle, clear)
+        "cause": cause,
+    }
+
+
+class _StopTally:
+    """false_stop_frames / missed_stop_frames over the scored frames (see evaluate_run)."""
+
+    def __init__(self, hold_off_s: float):
+        self.hold_off_ns = int(round(hold_off_s * 1e9))
+        self.last_real_ns: int | None = None
+        self.stop_frames = self.obstacle_stop_frames = self.fault_stop_frames = 0
+        self.stop_zone_frames = 0
+        self.false_stop = []
+        self.missed_stop = []
+
+    def add(self, index: int, stamp_ns: int, state: str, cause: str, truth, stop_rect) -> None:
+        if truth is None:
+            return
+        real = [o for o in truth if _rect_intersects(o, stop_rect)]
+        if real:
+            self.last_real_ns = stamp_ns
+            self.stop_zone_frames += 1
+        stop = state == "STOP"
+        if stop:
+            self.stop_frames += 1
+            if cause == "obstacle":
+                self.obstacle_stop_frames += 1
+            else:
+                self.fault_stop_frames += 1
+        if real and not stop:
+            self.missed_stop.append(int(index))
+        recent = (self.last_real_ns is not None
+                  and stamp_ns - self.last_real_ns <= self.hold_off_ns)
+        if stop and cause == "obstacle" and not real and not recent:
+            self.false_stop.append(int(index))
+
+    def result(self) -> dict:
+        return {"false_stop_frames": len(self.false_stop),
+                "false_stop_frame_indices": list(self.false_stop),
+                "missed_stop_frames": len(self.missed_stop),
+                "missed_stop_frame_indices": list(self.missed_stop),
+                "stop_zone_frames": self.stop_zone_frames,
+                "stop_frames": self.stop_frames,
+                "obstacle_stop_frames": self.obstacle_stop_frames,
+                "fault_stop_frames": self.fault_stop_frames}
+
+
+def evaluate_run(path: str | os.PathLike, pipeline: str | None = None, config=None,
+                 progress: Callable[[int, int], None] | None = None,
+                 out: str | os.PathLike | None = None) -> dict:
+    """Run ``pipeline`` over every frame of the run at ``path`` in order through the box's
+    decision core (appliance/decision.py: fusion grid, tracks when ``[tracking] enabled``,
+    zones, the safety gate) as the daemon does, and score the obstacle picture (occupied cells)
+    of every frame with truth.
+
+    ``pipeline``: a registry name, or None for :func:`default_pipelines`. ``config``: a Config,
+    a path to a config file, or None for the defaults. A frame whose required sensor file is
+    missing feeds the grid no points and is a fault for the gate (as a stale sensor is).
+
+    The gate sees the run's ``speed_mps``. It boots in STOP and holds STOP for ``[gate]
+    hold_off_s`` after the first cycle, as the box does after a start: those frames are STOP
+    with cause "boot", which is not an obstacle stop. ``false_stop_frames``: scored frames
+    where the gate says STOP for an obstacle (the obstacle verdict or the hold-off after one:
+    cause "obstacle"; a boot or fault STOP is not counted) while no truth footprint meets the
+    stop-zone rectangle, now or within the hold-off before (the hold-off after a real obstacle
+    left is the gate working). ``missed_stop_frames``: scored frames where a truth footprint
+    meets the stop-zone rectangle and the state is not STOP.
+
+    ``out``: write one JSON line per frame (every frame, scored or not) as
+    docs/run-format.md "The box's decisions" defines."""
+    import json
+
     from appliance.config import default_config, load_config
-    from appliance.fusion import GridFusion
+    from appliance.decision import DecisionCore
     from appliance.perception import SensorInputs, make_pipeline
+    from appliance.zones import zone_rects
 
     reader = RunReader(path)
     info = reader.info
+    configured = config is not None
     if config is None:
         cfg = default_config()
     elif isinstance(config, (str, os.PathLike)):
@@ -275,40 +408,77 @@ def evaluate_run(path: str | os.PathLike, pipeline: str, config=None,
     else:
         cfg = config
     zone = zone_for_run(info)
-    pipe = make_pipeline(pipeline, cfg)
+    if pipeline is None:
+        from appliance.perception.fused import FusedPipeline
+        names = default_pipelines(info, cfg, configured and getattr(cfg, "source", "") not in
+                                  ("<defaults>",))
+        parts = [make_pipeline(n, cfg) for n in names]
+        pipe = parts[0] if len(parts) == 1 else FusedPipeline(parts)
+        label = names[0] if len(names) == 1 else "fused(" + "+".join(names) + ")"
+    else:
+        pipe = make_pipeline(pipeline, cfg)
+        label = pipeline
+    sink = None
     try:
-        sensors = _check_sensors(pipe, pipeline, info)
-        fusion = GridFusion(cfg.grid)
+        sensors = _check_sensors(pipe, label, info)
+        core = DecisionCore(cfg)
         agg = Aggregate()
+        stops = _StopTally(cfg.gate.hold_off_s)
         missing_input = 0
+        if out is not None:
+            sink = open(out, "w", encoding="utf-8")
         n = len(reader)
+        parts = getattr(pipe, "parts", None)
         for i in range(n):
             fr = reader.frames[i]
             vehicle = reader.vehicle(i)
             data = {s: getattr(reader, s)(i) for s in sensors}
             inputs = SensorInputs(stamp_ns=fr.stamp_ns, vehicle=vehicle, **data)
             ms = None
-            if pipe.missing(inputs) or (sensors and all(v is None for v in data.values())):
+            faults = []
+            detections = {}
+            absent = [s for s, v in data.items() if v is None]
+            if pipe.missing(inputs) or (sensors and len(absent) == len(data)):
                 missing_input += 1
-                points = np.zeros((0, 2), np.float32)
+                faults.append(f"pipeline {label}: no fresh {', '.join(absent) or 'input'} "
+                              f"data")
             else:
+                if absent:
+                    faults.append(f"no fresh {', '.join(absent)} data")
                 t0 = time.perf_counter_ns()
-                det = pipe.process(inputs)
+                if parts is not None:      # each part by name, as the loop runs them
+                    for p in parts:
+                        if not p.missing(inputs):
+                            detections[p.name] = p.process(inputs)
+                else:
+                    detections[label] = pipe.process(inputs)
                 ms = (time.perf_counter_ns() - t0) / 1e6
-                points = det.points_xy
-            cells = fusion.update(points, vehicle, fr.stamp_ns)
+            picture = core.perceive(detections, vehicle, fr.stamp_ns)
+            gate_out = core.decide(fr.stamp_ns, faults, picture)
+            cells = picture.cells_xy
             truth = reader.truth(i)
             score = None if truth is None else score_frame(cells, truth, zone, cfg.grid.cell_m)
             agg.add(fr.index, score, ms)
+            rects = zone_rects(vehicle.speed_mps if vehicle is not None else 0.0, cfg.zones)
+            stops.add(fr.index, fr.stamp_ns, gate_out.state.value, core.gate.cause, truth,
+                      rects[0])
+            if sink is not None:
+                sink.write(json.dumps(decision_record(fr.index, fr.stamp_ns, gate_out, picture,
+                                                      rects, core.gate.cause),
+                                      ensure_ascii=False) + "\n")
             if progress is not None:
                 progress(i + 1, n)
     finally:
         pipe.close()
-    out = agg.result()
-    out.update({"run": info.name, "path": str(Path(path)), "pipeline": pipeline,
+        if sink is not None:
+            sink.close()
+    res = agg.result()
+    res.update(stops.result())
+    res.update({"run": info.name, "path": str(Path(path)), "pipeline": label,
+                "decision": "tracks" if cfg.tracking.enabled else "cells",
                 "frames_total": n, "frames_missing_input": missing_input,
                 "zone": zone.to_dict(), "config": getattr(cfg, "source", None)})
-    return out
+    return res
 
 
 def _fmt(v, pct: bool = False) -> str:

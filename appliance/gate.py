@@ -38,14 +38,18 @@ class SafetyGate:
         self.history: deque[StopEvent] = deque(maxlen=50)
         self.history.append(StopEvent(0, self.reason))
         self.transitions = 0
+        # what the present state is for: "boot", "fault", "no-picture", "obstacle" (STOP or
+        # SLOW for something in a zone, and the hold-off after it), "clear"
+        self.cause = "boot"
 
     def decide(self, now_ns: int, faults: list[str], verdict: ZoneVerdict | None,
                source_stamp_ns: int | None = None) -> GateOutput:
-        wanted, reason = self._wanted(faults, verdict)
+        wanted, reason, cause = self._wanted(faults, verdict)
         if _RANK[wanted] < _RANK[self.state] or wanted is GateState.STOP:
             # tightening (or staying in STOP): at once
             self._calm_since_ns = None
             self._set(wanted, reason, now_ns)
+            self.cause = cause
         elif _RANK[wanted] > _RANK[self.state]:
             # loosening: only after the hold-off, with no break
             if self._calm_since_ns is None:
@@ -54,12 +58,14 @@ class SafetyGate:
             if held + 1e-9 >= self.cfg.hold_off_s:
                 self._set(wanted, reason, now_ns)
                 self._calm_since_ns = None
+                self.cause = cause
             else:
                 self.reason = (f"holding {self.state.value}: clear for {held:.1f} of "
                                f"{self.cfg.hold_off_s:.1f} s (was: {self._last_cause})")
         else:
             self._calm_since_ns = None
             self.reason = reason
+            self.cause = cause
         self._seq = (self._seq + 1) & 0xFFFF
         return GateOutput(
             stamp_ns=now_ns, seq=self._seq, state=self.state, reason=self.reason,
@@ -70,18 +76,23 @@ class SafetyGate:
 
     _last_cause = "booting"
 
-    def _wanted(self, faults, verdict) -> tuple[GateState, str]:
+    def _wanted(self, faults, verdict) -> tuple[GateState, str, str]:
         if faults:
             more = f" (+{len(faults) - 1} more)" if len(faults) > 1 else ""
-            return GateState.STOP, faults[0] + more
+            return GateState.STOP, faults[0] + more, "fault"
         if verdict is None:
-            return GateState.STOP, "no obstacle picture this cycle"
+            return GateState.STOP, "no obstacle picture this cycle", "no-picture"
         if verdict.in_stop:
+            if verdict.stop_reason:
+                return GateState.STOP, verdict.stop_reason, "obstacle"
             return (GateState.STOP, f"obstacle {verdict.nearest_m:.1f} m ahead in the stop zone "
-                                    f"({verdict.stop_len_m:.1f} m)")
+                                    f"({verdict.stop_len_m:.1f} m)", "obstacle")
         if verdict.in_slow:
-            return (GateState.SLOW, f"obstacle {verdict.nearest_m:.1f} m ahead in the slow zone")
-        return GateState.CLEAR, "zone clear"
+            if verdict.slow_reason:
+                return GateState.SLOW, verdict.slow_reason, "obstacle"
+            return (GateState.SLOW, f"obstacle {verdict.nearest_m:.1f} m ahead in the slow zone",
+                    "obstacle")
+        return GateState.CLEAR, "zone clear", "clear"
 
     def _set(self, state: GateState, reason: str, now_ns: int) -> None:
         if state is not self.state:

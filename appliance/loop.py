@@ -18,10 +18,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from appliance.config import Config
-from appliance.fusion import GridFusion
-from appliance.gate import SafetyGate
+from appliance.decision import DecisionCore
 from appliance.perception import Detections, Pipeline, SensorInputs
-from appliance.zones import ZoneVerdict, assess
+from appliance.zones import ZoneVerdict
 from hal.clock import Clock
 from hal.devices import Device, VehicleLink
 from hal.health import Health
@@ -48,6 +47,7 @@ class CycleResult:
     sent: bool
     on_time: bool
     inputs: SensorInputs | None = None
+    tracks: list = field(default_factory=list)    # appliance.tracking.TrackView, every track
 
 
 class _Timing:
@@ -76,8 +76,10 @@ class ApplianceLoop:
         self.kinds = kinds or {n: d.kind for n, d in devices.items()}
         self.links: list[VehicleLink] = [d for d in devices.values() if isinstance(d, VehicleLink)]
         self.pipelines = pipelines
-        self.grid = GridFusion(cfg.grid)
-        self.gate = SafetyGate(cfg.gate, cfg.zones)
+        # the one decision core (fusion, tracks, zones, gate), shared with `fieldguard eval`
+        self.core = DecisionCore(cfg)
+        self.grid = self.core.grid
+        self.gate = self.core.gate
         self.period_ns = int(round(1e9 / cfg.loop.rate_hz))
         req = set(cfg.gate.required)
         if req:
@@ -171,11 +173,8 @@ class ApplianceLoop:
 
         # ---- fusion ----
         t0, w0 = self.clock.now_ns(), time.perf_counter()
-        pts = [d.points_xy for d in detections.values() if len(d.points_xy)]
-        pts_xy = np.concatenate(pts) if pts else np.zeros((0, 2), np.float32)
-        cells = self.grid.update(pts_xy, vehicle, now)
-        speed = vehicle.speed_mps if vehicle is not None else 0.0
-        verdict = assess(cells, speed, self.cfg.zones)
+        picture = self.core.perceive(detections, vehicle, now)
+        cells, verdict = picture.cells_xy, picture.verdict
         mark("fusion", t0, w0)
 
         # ---- gate ----
@@ -189,7 +188,7 @@ class ApplianceLoop:
             faults.append("no vehicle link configured")
         stamps = [getattr(s, "stamp_ns", None) for s in (inputs.stereo, inputs.rgbd, inputs.laser)]
         stamps = [s for s in stamps if s is not None]
-        out = self.gate.decide(now, faults, verdict, min(stamps) if stamps else None)
+        out = self.core.decide(now, faults, picture, min(stamps) if stamps else None)
         mark("gate", t0, w0)
 
         # ---- send ----
@@ -221,7 +220,7 @@ class ApplianceLoop:
             self.overruns += 1
         self.cycles += 1
         res = CycleResult(self.cycles, now, out, faults, verdict, cells, detections, stage_ms,
-                          wall_ms, skipped, sent_all, on_time, inputs)
+                          wall_ms, skipped, sent_all, on_time, inputs, picture.tracks)
         with self._lock:
             self.last = res
         for cb in self.on_cycle:
@@ -299,5 +298,11 @@ class ApplianceLoop:
                 "in_slow_zone": None if v is None else v.in_slow,
                 "nearest_m": None if v is None or v.nearest_m is None else round(v.nearest_m, 2),
                 "stop_zone_m": None if v is None else round(v.stop_len_m, 2),
+                "grid_cells": int(len(self.core.last.grid_cells_xy)) if self.core.last else None,
+                "decision": "tracks" if self.core.tracker is not None else "cells",
             }
+            # the confirmed tracks (the obstacles the box holds), nearest first
+            out["tracks"] = [t.to_dict() for t in sorted(
+                (t for t in last.tracks if t.confirmed), key=lambda t: t.x_m ** 2 + t.y_m ** 2)]
+            out["tentative_tracks"] = sum(1 for t in last.tracks if not t.confirmed)
         return out

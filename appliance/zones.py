@@ -24,6 +24,20 @@ class ZoneVerdict:
     in_slow: int
     nearest_m: float | None      # nearest occupied cell ahead within the path, from the front
     sectors: tuple[ObstacleSector, ...]
+    # the decision on tracks (appliance/decision.py) names what it stops for; None: cells
+    stop_reason: str | None = None
+    slow_reason: str | None = None
+    track_ids: tuple[int, ...] = ()   # the tracks in (or predicted into) the stop/slow zones
+
+
+def zone_rects(speed_mps: float, z: ZonesConfig) -> tuple[dict, dict]:
+    """The stop and slow zones as vehicle-frame rectangles {x_min_m, x_max_m, half_width_m}
+    (docs/run-format.md "The box's decisions")."""
+    stop_len = stop_length(speed_mps, z)
+    slow_len = stop_len + z.slow_extra_m
+    f = z.front_x_m
+    return ({"x_min_m": f, "x_max_m": f + stop_len, "half_width_m": z.half_width_m},
+            {"x_min_m": f + stop_len, "x_max_m": f + slow_len, "half_width_m": z.half_width_m})
 
 
 def stop_length(speed_mps: float, z: ZonesConfig) -> float:

@@ -1,0 +1,147 @@
+"""The one decision core: detections -> fusion grid -> candidates -> tracks -> zones -> gate.
+
+Both the 10 Hz loop (appliance/loop.py) and the evaluator (appliance/evaluation.py) run this,
+so what ``fieldguard eval`` scores is what the box decides.
+
+- ``[tracking] enabled = false``: the papers' cell-based decision. Every pipeline's points go
+  into the fusion grid; the occupied cells are the obstacle picture and any occupied cell in the
+  stop zone is a STOP (the reproduction tables).
+- ``enabled = true``: the grid is still kept (status, console), but the decision is on tracks
+  (appliance/tracking.py): STOP when a confirmed track's footprint is in the stop zone, or its
+  own motion over ground carries it into the stop zone within the reaction time
+  (``[zones] reaction_time_s``); SLOW likewise for the slow zone. The obstacle picture (cells,
+  for scoring and the sectors of OBSTACLE_DISTANCE) is the cells of the confirmed tracks.
+
+Pure code: arrays in, verdicts out.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from appliance.config import Config
+from appliance.fusion import GridFusion
+from appliance.gate import SafetyGate
+from appliance.perception.base import Detections
+from appliance.tracking import Tracker, TrackView
+from appliance.zones import ZoneVerdict, assess, drop_excluded, sectors, stop_length
+from hal.types import GateOutput, VehicleState
+
+
+@dataclass
+class Picture:
+    """What the fusion stage hands the gate this cycle."""
+
+    cells_xy: np.ndarray                  # the obstacle picture (vehicle frame cell centres)
+    verdict: ZoneVerdict
+    speed_mps: float
+    grid_cells_xy: np.ndarray             # the fusion grid's occupied cells
+    tracks: list[TrackView] = field(default_factory=list)   # every track (confirmed flag)
+
+    @property
+    def objects(self) -> list[TrackView]:
+        return [t for t in self.tracks if t.confirmed]
+
+
+def _overlap_x(t: TrackView, x0: float, x1: float, half_width: float, dx: float = 0.0,
+               dy: float = 0.0) -> bool:
+    x, y = t.x_m + dx, t.y_m + dy
+    return (x + t.length_m / 2 >= x0 and x - t.length_m / 2 <= x1
+            and abs(y) - t.width_m / 2 <= half_width)
+
+
+def assess_tracks(tracks: list[TrackView], cells_xy: np.ndarray, speed_mps: float, cfg: Config
+                  ) -> ZoneVerdict:
+    """The zone verdict on confirmed tracks (see the module doc)."""
+    z, tc = cfg.zones, cfg.tracking
+    stop_len = stop_length(speed_mps, z)
+    slow_len = stop_len + z.slow_extra_m
+    f = z.front_x_m
+    horizon = z.reaction_time_s
+    steps = np.linspace(0.0, horizon, 6)[1:] if horizon > 0 else np.zeros(0)
+    stop, slow, nearest = [], [], None
+    stop_pred, slow_pred = {}, {}
+    for t in tracks:
+        if not t.confirmed:
+            continue
+        if len(z.exclusion) and not len(drop_excluded(np.array([[t.x_m, t.y_m]]), z)):
+            continue
+        in_stop = _overlap_x(t, f, f + stop_len, z.half_width_m)
+        in_slow = not in_stop and _overlap_x(t, f + stop_len, f + slow_len, z.half_width_m)
+        moving = math.hypot(t.vx_mps, t.vy_mps) >= tc.predict_min_mps
+        if not in_stop and moving:
+            for s in steps:
+                if _overlap_x(t, f, f + stop_len, z.half_width_m, t.vx_mps * s, t.vy_mps * s):
+                    in_stop = True
+                    stop_pred[t.id] = float(s)
+                    break
+        if not in_stop and not in_slow and moving:
+            for s in steps:
+                if _overlap_x(t, f + stop_len, f + slow_len, z.half_width_m, t.vx_mps * s,
+                              t.vy_mps * s):
+                    in_slow = True
+                    slow_pred[t.id] = float(s)
+                    break
+        if in_stop or in_slow:
+            ahead = max(0.0, t.x_m - t.length_m / 2 - f)
+            (stop if in_stop else slow).append((ahead, t))
+            nearest = ahead if nearest is None else min(nearest, ahead)
+
+    def name(t: TrackView) -> str:
+        return f"track {t.id} ({'+'.join(t.sources) or '?'})"
+
+    stop_reason = slow_reason = None
+    if stop:
+        ahead, t = min(stop, key=lambda a: a[0])
+        if t.id in stop_pred and len(stop) == 1:
+            stop_reason = (f"obstacle {name(t)} {ahead:.1f} m ahead, moving "
+                           f"{math.hypot(t.vx_mps, t.vy_mps):.1f} m/s, predicted into the stop "
+                           f"zone ({stop_len:.1f} m) in {stop_pred[t.id]:.1f} s")
+        else:
+            stop_reason = (f"obstacle {name(t)} {ahead:.1f} m ahead in the stop zone "
+                           f"({stop_len:.1f} m)")
+    elif slow:
+        ahead, t = min(slow, key=lambda a: a[0])
+        what = " predicted" if t.id in slow_pred else ""
+        slow_reason = f"obstacle {name(t)} {ahead:.1f} m ahead{what} in the slow zone"
+    cells = drop_excluded(np.asarray(cells_xy, dtype=np.float64).reshape(-1, 2), z)
+    return ZoneVerdict(stop_len, slow_len, len(stop), len(slow), nearest, sectors(cells),
+                       stop_reason=stop_reason, slow_reason=slow_reason,
+                       track_ids=tuple(t.id for _, t in stop + slow))
+
+
+class DecisionCore:
+    """Fusion, tracking, zones and the gate for one box (one instance per loop or per run)."""
+
+    def __init__(self, cfg: Config):
+        self.cfg = cfg
+        self.grid = GridFusion(cfg.grid)
+        self.tracker = Tracker(cfg.tracking, cfg.grid) if cfg.tracking.enabled else None
+        self.gate = SafetyGate(cfg.gate, cfg.zones)
+        self.last: Picture | None = None
+
+    def perceive(self, detections: dict[str, Detections], vehicle: VehicleState | None,
+                 now_ns: int) -> Picture:
+        """Fuse this cycle's detections (the loop's "fusion" stage)."""
+        pts = [d.points_xy for d in detections.values() if d is not None and len(d.points_xy)]
+        pts_xy = np.concatenate(pts) if pts else np.zeros((0, 2), np.float32)
+        grid_cells = self.grid.update(pts_xy, vehicle, now_ns)
+        speed = vehicle.speed_mps if vehicle is not None else 0.0
+        if self.tracker is None:
+            pic = Picture(grid_cells, assess(grid_cells, speed, self.cfg.zones), speed,
+                          grid_cells)
+        else:
+            tracks = self.tracker.update(detections, vehicle, now_ns)
+            cells = self.tracker.confirmed_cells()
+            pic = Picture(cells, assess_tracks(tracks, cells, speed, self.cfg), speed,
+                          grid_cells, tracks)
+        self.last = pic
+        return pic
+
+    def decide(self, now_ns: int, faults: list[str], picture: Picture | None,
+               source_stamp_ns: int | None = None) -> GateOutput:
+        """The gate's answer for this cycle (the loop's "gate" stage)."""
+        return self.gate.decide(now_ns, faults, None if picture is None else picture.verdict,
+                                source_stamp_ns)

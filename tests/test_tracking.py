@@ -1,0 +1,168 @@
+"""The tracker: candidates from points, world-frame association, evidence, confirmation."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from appliance.config import (ConfigError, GridConfig, SourceWeights, TrackingConfig,
+                              parse_config)
+from appliance.perception import Candidate, Detections
+from appliance.tracking import Tracker, cluster_points, measurements, merge_touching
+from hal.types import VehicleState
+
+S = 10**9
+DT = S // 10
+
+
+def vs(speed=0.0, yaw_rate=0.0):
+    return VehicleState(0, 0, speed_mps=speed, yaw_rate_radps=yaw_rate)
+
+
+def blob(x, y, n=3, step=0.1):
+    """An n x n patch of points (one per 0.1 m cell) centred near (x, y)."""
+    o = (np.arange(n) - (n - 1) / 2) * step
+    return np.array([[x + a, y + b] for a in o for b in o])
+
+
+def test_clustering_joins_near_cells_and_keeps_far_apart():
+    cfg = TrackingConfig(cluster_gap_m=0.3)
+    # cell centres: a 3x3 patch at y -0.05..0.15, one cell at 0.55 (three empty cells = 0.3 m
+    # between), one 0.5 m further off at 1.15 (four empty cells: apart), a patch far away
+    pts = np.r_[blob(5.05, 0.05), blob(5.05, 0.55, n=1), blob(5.05, 1.15, n=1),
+                blob(8.05, 2.05)]
+    ms = cluster_points({"stereo": (pts, ("geometry",))}, GridConfig(), cfg)
+    assert len(ms) == 3
+    near = min(ms, key=lambda m: (m.x_m, m.y_m))
+    assert near.points == 10 and near.width_m == pytest.approx(0.7, abs=1e-6)
+    assert near.length_m == pytest.approx(0.3, abs=1e-6)
+    assert near.sources == ("geometry",) and near.pipelines == ("stereo",)
+
+
+def test_one_labelling_over_pipelines_gives_one_candidate_with_both_sources():
+    cfg = TrackingConfig()
+    ms = cluster_points({"laser": (blob(6.0, 0.0, n=1), ("laser",)),
+                         "stereo": (blob(6.1, 0.0), ("geometry",))}, GridConfig(), cfg)
+    assert len(ms) == 1 and ms[0].sources == ("laser", "geometry")
+    # the laser hit one cell, stereo nine: the strengths say so
+    assert ms[0].strength["laser"] < ms[0].strength["geometry"]
+
+
+def test_front_end_candidates_are_used_and_merged_with_point_clusters():
+    c = Candidate(x_m=6.0, y_m=0.0, length_m=0.4, width_m=0.4, height_m=1.7, points=200,
+                  confidence=0.9, sources=("geometry", "novelty"), pipeline="stereo-novelty")
+    dets = {"stereo-novelty": Detections(points_xy=blob(6.0, 0.0), candidates=(c,)),
+            "laser": Detections(points_xy=blob(5.85, 0.0, n=1))}
+    ms = measurements(dets, GridConfig(), TrackingConfig())
+    assert len(ms) == 1             # the candidate (its points not clustered again) + laser
+    m = ms[0]
+    assert set(m.sources) == {"geometry", "novelty", "laser"} and m.height_m == 1.7
+    assert set(m.pipelines) == {"stereo-novelty", "laser"}
+    assert len(merge_touching([m], 0.3)) == 1
+
+
+def run(tracker, frames, speed=0.0):
+    """frames: list of {pipeline: points}; returns the views after each frame."""
+    out = []
+    for k, f in enumerate(frames):
+        dets = {n: Detections(points_xy=np.asarray(p, float).reshape(-1, 2)) for n, p in f.items()}
+        out.append(tracker.update(dets, vs(speed), k * DT))
+    return out
+
+
+def test_a_post_is_confirmed_while_the_vehicle_drives_at_it_and_stays_put_in_the_world():
+    tr = Tracker(TrackingConfig())
+    frames = [{"stereo": blob(12.0 - 0.25 * k, 0.0)} for k in range(8)]
+    views = run(tr, frames, speed=2.5)
+    conf = [any(v.confirmed for v in vv) for vv in views]
+    assert not conf[0] and conf[-1]
+    (t,) = [v for v in views[-1] if v.confirmed]
+    assert abs(t.vx_mps) < 0.3 and abs(t.vy_mps) < 0.3     # still over ground
+    assert t.x_m == pytest.approx(12.0 - 0.25 * 7, abs=0.15)
+    assert t.sources == ("geometry",)
+
+
+def test_fewer_frames_near_and_large_more_far_and_small():
+    tr = Tracker(TrackingConfig(confirm_frames_min=2, confirm_frames_max=6))
+    assert tr.frames_needed(3.0, 1.5) == 2
+    assert tr.frames_needed(25.0, 0.1) == 6
+    assert 2 < tr.frames_needed(25.0, 1.5) < 6
+
+
+def test_something_that_moves_with_the_vehicle_is_not_confirmed():
+    """A stereo artefact (or the vehicle's shadow) stays at 7 m ahead while the vehicle drives
+    2 m/s: it moves over ground with the vehicle and never becomes an obstacle."""
+    tr = Tracker(TrackingConfig(max_speed_mps=10.0))     # only the co-moving test applies
+    views = run(tr, [{"stereo": blob(7.0, 0.0)} for _ in range(20)], speed=2.0)
+    assert not any(v.confirmed for v in views[-1])
+    # the same patch with the vehicle standing: a real obstacle
+    tr = Tracker(TrackingConfig(max_speed_mps=10.0))
+    views = run(tr, [{"stereo": blob(7.0, 0.0)} for _ in range(20)], speed=0.0)
+    assert any(v.confirmed for v in views[-1])
+
+
+def test_random_speckle_is_never_confirmed():
+    rng = np.random.default_rng(3)
+    tr = Tracker(TrackingConfig())
+    frames = [{"stereo": np.c_[rng.uniform(3, 20, 15), rng.uniform(-6, 6, 15)]}
+              for _ in range(60)]
+    views = run(tr, frames, speed=2.5)
+    assert sum(v.confirmed for vv in views for v in vv) == 0
+
+
+def test_one_noisy_cue_alone_does_not_confirm_two_that_agree_do():
+    # a weak cue: capped below the confirmation threshold on its own
+    cfg = TrackingConfig(weights=SourceWeights(laser=0.3, geometry=0.3), confirm_logodds=2.0,
+                         source_cap_frames=5.0)
+    tr = Tracker(cfg)
+    views = run(tr, [{"laser": blob(8.0, 0.0)} for _ in range(15)])
+    assert not any(v.confirmed for v in views[-1])
+    tr = Tracker(cfg)
+    views = run(tr, [{"laser": blob(8.0, 0.0), "stereo": blob(8.0, 0.0)} for _ in range(15)])
+    (t,) = [v for v in views[-1] if v.confirmed]
+    assert t.sources == ("laser", "geometry")
+
+
+def test_a_walking_person_gets_a_velocity():
+    tr = Tracker(TrackingConfig())
+    # crossing from the left at 1.2 m/s, 8 m ahead, vehicle standing
+    views = run(tr, [{"stereo": blob(8.0, 3.0 - 0.12 * k)} for k in range(15)])
+    (t,) = [v for v in views[-1] if v.confirmed]
+    assert t.vy_mps == pytest.approx(-1.2, abs=0.25) and abs(t.vx_mps) < 0.3
+
+
+def test_coasting_is_bounded():
+    cfg = TrackingConfig(coast_s=0.3)
+    tr = Tracker(cfg)
+    frames = [{"stereo": blob(8.0, 0.0)} for _ in range(6)] + [{} for _ in range(6)]
+    views = run(tr, frames)
+    held = [any(v.confirmed for v in vv) for vv in views]
+    assert held[5] and held[6] and held[7] and held[8]     # 0.1, 0.2, 0.3 s unseen: held
+    assert not held[9]                                     # 0.4 s: gone
+    assert [v.coasting for v in views[7] if v.confirmed] == [True]
+    # the held track's cells are its footprint
+    assert len(tr.confirmed_cells()) == 0
+    tr2 = Tracker(cfg)
+    run(tr2, frames[:7])
+    assert len(tr2.confirmed_cells()) > 0
+
+
+def test_a_gap_in_time_clears_the_tracks():
+    tr = Tracker(TrackingConfig())
+    run(tr, [{"stereo": blob(8.0, 0.0)} for _ in range(6)])
+    assert tr.tracks
+    tr.update({}, vs(), 10 * S)
+    assert not tr.tracks
+
+
+def test_tracking_config_is_validated():
+    with pytest.raises(ConfigError, match=r"tracking.*far_m"):
+        parse_config({"tracking": {"near_m": 20.0, "far_m": 10.0}})
+    with pytest.raises(ConfigError, match=r"tracking.weights.laser"):
+        parse_config({"tracking": {"weights": {"laser": -1.0}}})
+    with pytest.raises(ConfigError, match=r"tracking.bogus"):
+        parse_config({"tracking": {"bogus": 1}})
+    c = parse_config({"tracking": {"enabled": True, "weights": {"novelty": 0.2}}})
+    assert c.tracking.enabled and c.tracking.weights.novelty == 0.2
+    assert dataclasses.replace(c.tracking, enabled=False).weights.novelty == 0.2
