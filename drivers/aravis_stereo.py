@@ -35,8 +35,8 @@ from hal.devices import StereoCamera, check_timeout
 from hal.errors import DeviceInitializationError, DeviceOperationError, DeviceError
 from hal.types import Mount, StereoCalibration, StereoFrame
 
-from .calibration import MOUNT_SCHEMA, Backoff, Rectifier, load_stereo_calibration, \
-    mount_from_options
+from .calibration import MOUNT_SCHEMA, Rectifier, load_stereo_calibration, mount_from_options
+from .reconnect import Backoff, Reconnecting
 
 # GenICam pixel format -> OpenCV conversion code name (OpenCV names Bayer patterns by the second
 # row's second pixel, so the names are swapped)
@@ -223,7 +223,7 @@ class _Cam:
         return out
 
 
-class AravisStereoCamera(StereoCamera):
+class AravisStereoCamera(Reconnecting, StereoCamera):
     options_schema = {"left": str, "right": str, "calibration": str, "pixel_format": str,
                       "exposure_us": float, "gain_db": float, "trigger": str, "rate_hz": float,
                       "pair_tolerance_ms": float, "pair_by": str, "packet_size": int,
@@ -306,11 +306,10 @@ class AravisStereoCamera(StereoCamera):
             c.close()
         self._streaming = False
 
-    def _drop(self, reason: str) -> None:
+    def _disconnect(self) -> None:
         for c in self.cams:
             c.close()
         self._streaming = False
-        self._lost(self.backoff, "reconnects", reason)
 
     def _start(self) -> None:
         w, h = self.rectifier.cal.image_size
@@ -324,7 +323,7 @@ class AravisStereoCamera(StereoCamera):
     # ---- acquisition ----------------------------------------------------------------------------
     def _acquire_once(self) -> None:
         if not self._streaming:
-            self._connect_when_due(self.backoff, self._start, self._drop)
+            self._connect_when_due(self._start)
             return
         now = time.monotonic()
         if self.cfg["trigger"] == "Software" and now >= self._next_trigger:

@@ -50,7 +50,8 @@ from hal.devices import DepthCamera, check_timeout
 from hal.errors import DeviceError, DeviceOperationError
 from hal.types import DepthCalibration, DepthFrame, Mount, PinholeCalibration
 
-from .calibration import MOUNT_SCHEMA, Backoff, mount_from_options
+from .calibration import MOUNT_SCHEMA, mount_from_options
+from .reconnect import Backoff, Reconnecting
 
 ROOT = Path(__file__).resolve().parents[1]
 WIDTH, HEIGHT = 640, 480
@@ -71,7 +72,7 @@ SLOT_BYTES = SLOT_HEAD + DEPTH_BYTES + COLOUR_BYTES
 
 
 # ---------------------------------------------------------------------------------------------
-class FreenectDepthCamera(DepthCamera):
+class FreenectDepthCamera(Reconnecting, DepthCamera):
     """A Kinect (v1 / Kinect for Windows, anything libfreenect drives) as a hal.DepthCamera."""
 
     options_schema = {"index": int, "fx": float, "fy": float, "cx": float, "cy": float,
@@ -206,9 +207,10 @@ class FreenectDepthCamera(DepthCamera):
             except OSError:
                 pass
 
-    def _drop(self, reason: str) -> None:
+    reconnect_counter = "restarts"
+
+    def _disconnect(self) -> None:
         self._kill()
-        self._lost(self.backoff, "restarts", reason)
 
     def _close(self) -> None:
         self._kill()
@@ -225,7 +227,7 @@ class FreenectDepthCamera(DepthCamera):
     # ---- acquisition ----------------------------------------------------------------------------
     def _acquire_once(self) -> None:
         if self._proc is None:
-            self._connect_when_due(self.backoff, self._spawn, self._drop)
+            self._connect_when_due(self._spawn)
             return
         p = self._proc
         out, err = p.stdout.fileno(), p.stderr.fileno()

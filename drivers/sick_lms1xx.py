@@ -42,7 +42,8 @@ from hal.errors import (DeviceDataError, DeviceInitializationError,
                         DeviceOperationError, DeviceTimeoutError)
 from hal.types import LaserGeometry, LaserScan, Mount
 
-from .calibration import MOUNT_SCHEMA, Backoff, mount_from_options
+from .calibration import MOUNT_SCHEMA, mount_from_options
+from .reconnect import Backoff, Reconnecting
 
 STX, ETX = 0x02, 0x03
 _WIRE_ERRORS = {"garbage_bytes": "byte(s) outside any telegram",
@@ -255,7 +256,7 @@ def parse_scandata(payload: bytes) -> ScanTelegram:
 
 
 # ---------------------------------------------------------------------------------------------
-class SickLms1xxLaser(SafetyLaser):
+class SickLms1xxLaser(Reconnecting, SafetyLaser):
     """A SICK LMS1xx (LMS100/111/151) on TCP 2111, CoLa-A."""
 
     options_schema = {"host": str, "port": int, "range_max_m": float, "angle_offset_deg": float,
@@ -267,6 +268,7 @@ class SickLms1xxLaser(SafetyLaser):
     # its next scan was due, so the gate stops within two 10 Hz cycles (docs/hardware.md)
     default_timeout_s = 0.1
     DEFAULT_MOUNT = Mount(x_m=1.3, z_m=0.7)
+    reconnect_counter = "disconnects"
 
     def __init__(self, name, clock, host: str = "192.168.0.1", port: int = DEFAULT_PORT,
                  timeout_s: float = default_timeout_s, mount: Mount | None = None,
@@ -284,7 +286,6 @@ class SickLms1xxLaser(SafetyLaser):
         self.connect_timeout_s = float(connect_timeout_s)
         self.rssi = bool(rssi)
         self.fault_hold_s = float(fault_hold_s)
-        self._bad_until = 0.0
         self.backoff = Backoff(0.1, backoff_max_s)
         self.framer = ColaAFramer()
         self._sock: socket.socket | None = None
@@ -331,17 +332,16 @@ class SickLms1xxLaser(SafetyLaser):
         finally:
             s.close()
 
-    def _drop(self, reason: str) -> None:
-        if self._sock is not None:
+    def _disconnect(self) -> None:
+        s, self._sock = self._sock, None
+        if s is not None:
             try:
-                self._sock.close()
+                s.close()
             except OSError:
                 pass
-        self._sock = None
         self.framer.reset()
         self._last_counter = None
         self._layout = None
-        self._lost(self.backoff, "disconnects", reason)
 
     def _command(self, text: str, expect: bytes, timeout_s: float = 0.5) -> bytes:
         """Send one CoLa-A command, return the payload of the answer starting with ``expect``
@@ -383,12 +383,6 @@ class SickLms1xxLaser(SafetyLaser):
                 self._wire_error(f"bad data on the wire: {d} {_WIRE_ERRORS[k]}")
         return frames
 
-    def _wire_error(self, reason: str) -> None:
-        """Corruption on the wire: the laser is not trusted for ``fault_hold_s`` (scans that
-        arrive meanwhile are discarded), so the loop is sure to see the fault."""
-        self._bad_until = time.monotonic() + self.fault_hold_s
-        self._fault(reason)
-
     def _connect(self) -> None:
         try:
             self._sock = socket.create_connection((self.host, self.port),
@@ -420,7 +414,7 @@ class SickLms1xxLaser(SafetyLaser):
     # ---- acquisition --------------------------------------------------------------------------
     def _acquire_once(self) -> None:
         if self._sock is None:
-            self._connect_when_due(self.backoff, self._connect, self._drop)
+            self._connect_when_due(self._connect)
             return
         try:
             frames = self._receive(0.1)
@@ -472,7 +466,7 @@ class SickLms1xxLaser(SafetyLaser):
             self.last_rssi = tel.channels8["RSSI1"].values
         self._count("scans")
         self.backoff.reset()
-        if time.monotonic() < self._bad_until:
+        if self._distrusted():
             self._count("scans_discarded")
             return
         self._publish(LaserScan(stamp_ns=self.clock.now_ns(), seq=tel.scan_counter,

@@ -37,7 +37,7 @@ import numpy as np
 from hal.devices import StrobeTrigger, check_timeout
 from hal.errors import DeviceOperationError
 
-from .calibration import Backoff
+from .reconnect import Backoff, Reconnecting
 
 DAY, NIGHT = "day", "night-strobe"
 
@@ -163,7 +163,7 @@ class PulseCheck:
 
 
 # ---------------------------------------------------------------------------------------------
-class StrobeSerialTrigger(StrobeTrigger):
+class StrobeSerialTrigger(Reconnecting, StrobeTrigger):
     """The trigger/strobe controller on a serial port (pyserial)."""
 
     options_schema = {"port": str, "baudrate": int, "rate_hz": float, "strobe": bool,
@@ -173,6 +173,7 @@ class StrobeSerialTrigger(StrobeTrigger):
     # one STATUS period (0.04 s) + 60 ms late tolerance: a silent controller is stale 60 ms after
     # its next answer was due, so the gate stops within two 10 Hz cycles (docs/hardware.md)
     default_timeout_s = 0.1
+    reconnect_counter = "reopens"
 
     def __init__(self, name, clock, port: str = "/dev/fieldguard-strobe", baudrate: int = 115200,
                  timeout_s: float = default_timeout_s, rate_hz: float = 10.0,
@@ -199,7 +200,6 @@ class StrobeSerialTrigger(StrobeTrigger):
         self._cmds: queue.Queue[str] = queue.Queue()
         self._pending: dict[str, float] = {}      # command word -> deadline (monotonic)
         self._next_status = 0.0
-        self._bad_until = 0.0
         self.pulse_check = PulseCheck()
         self._status_sent: collections.deque = collections.deque()   # STATUS? send times
         self.last_status: dict | None = None
@@ -248,18 +248,17 @@ class StrobeSerialTrigger(StrobeTrigger):
                 pass
             s.close()
 
-    def _drop(self, reason: str) -> None:
-        if self._ser is not None:
+    def _disconnect(self) -> None:
+        s, self._ser = self._ser, None
+        if s is not None:
             try:
-                self._ser.close()
+                s.close()
             except Exception:
                 pass
-        self._ser = None
         self._buf = b""
         self._pending.clear()
         self._status_sent.clear()
         self.pulse_check.reset()
-        self._lost(self.backoff, "reopens", reason)
 
     def _connect(self) -> None:
         import serial
@@ -297,15 +296,11 @@ class StrobeSerialTrigger(StrobeTrigger):
             self._pending[word] = time.monotonic() + self.ack_timeout_s
         self._count("sent")
 
-    def _wire_error(self, reason: str) -> None:
-        self._bad_until = time.monotonic() + self.fault_hold_s
-        self._fault(reason)
-
     # ---- acquisition ----------------------------------------------------------------------------
     def _acquire_once(self) -> None:
         import serial
         if self._ser is None:
-            self._connect_when_due(self.backoff, self._connect, self._drop)
+            self._connect_when_due(self._connect)
             return
         try:
             while True:
@@ -358,8 +353,7 @@ class StrobeSerialTrigger(StrobeTrigger):
             self._count("controller_faults")
             code, _, text = payload[6:].partition(" ")
             self._fault_text[code] = text
-            self._bad_until = time.monotonic() + self.fault_hold_s
-            self._fault(f"controller fault {code}: {text}")
+            self._wire_error(f"controller fault {code}: {text}")
         elif w[0] == "STATUS":
             try:
                 st = parse_status(payload)
@@ -402,7 +396,7 @@ class StrobeSerialTrigger(StrobeTrigger):
             self._fault(f"trigger stopped firing (pulse counter stuck at {st['pulses']}, the "
                         f"next pulse is overdue)")
             return
-        if now < self._bad_until or self._pending:
+        if self._distrusted() or self._pending:
             return          # keep the fault visible / wait for the acks
         self.backoff.reset()
         self._publish({"stamp_ns": self.clock.now_ns(), "rate_hz": st["rate_hz"],

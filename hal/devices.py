@@ -112,25 +112,6 @@ class Device(ABC, Generic[T]):
         """Block for at most a short while, publish what arrived. Override for threaded drivers."""
         self._stop_evt.wait(0.1)
 
-    # ---- drivers that hold a connection (threaded) -------------------------------------------
-    def _connect_when_due(self, backoff, connect, drop) -> None:
-        """Call ``connect()`` once ``backoff`` (``ready()``, ``remaining_s()``) allows, else wait
-        at most 0.1 s (close() is never held up); a DeviceError from it goes to ``drop(reason)``,
-        which must close what is half open and call :meth:`_lost`."""
-        if not backoff.ready():
-            self._stop_evt.wait(min(0.1, backoff.remaining_s()))
-            return
-        try:
-            connect()
-        except DeviceError as exc:
-            drop(str(exc))
-
-    def _lost(self, backoff, counter: str, reason: str) -> None:
-        """The connection is gone: schedule the next try (``backoff.failed()``), count it, FAULT."""
-        backoff.failed()
-        self._count(counter)
-        self._fault(reason)
-
     def service(self, now_ns: int) -> None:
         """Called by the loop once per cycle before it reads the device. Lock-step drivers
         (simulation, replay) publish here; it must return quickly. Default: nothing."""

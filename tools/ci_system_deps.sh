@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # System packages the vehicle-link tests need (idempotent; Debian 12; run as root in CI).
 #   iproute2: `ip netns` for the CAN test's private multicast loopback.
+#   chromium, chromium-driver: the web console's browser test (headless, driven by selenium).
 # Python packages come from pyproject (pymavlink, python-can[multicast], cantools; test extra:
 # can-j1939, MAVProxy installed with --no-deps, see docs/vehicle-links.md).
 # Sourced (tools/hw_system_deps.sh does), it only defines apt_ensure and pip_ensure.
@@ -32,7 +33,7 @@ pip_ensure() {
 PY=${PY:-.venv/bin/python}
 [[ "${BASH_SOURCE[0]}" != "$0" ]] && return 0
 
-apt_ensure iproute2
+apt_ensure iproute2 chromium chromium-driver
 # MAVProxy without its GUI dependencies (vtk, matplotlib, opencv: over 1 GB)
 if [ -x "$PY" ] && ! "$PY" -c "import MAVProxy" 2>/dev/null; then
   "$PY" -m pip install --quiet pymavlink defusedxml pyserial pynmeagps

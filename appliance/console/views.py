@@ -39,7 +39,13 @@ def track_dicts(tracks) -> list[dict]:
 def _track_label(t: dict) -> str:
     name = t.get("label") or t.get("class") or t.get("cls") or ""
     tid = t.get("id", t.get("track_id", ""))
-    return f"{tid} {name}".strip() or "track"
+    return f"#{tid} {name}".strip()
+
+
+def _track_style(t: dict):
+    """Confirmed tracks (the obstacles the box holds) bold and labelled; tentative ones thin."""
+    confirmed = t.get("confirmed", True)
+    return (TRACK_BGR, 2, True) if confirmed else ((150, 110, 60), 1, False)
 
 
 def camera_view(res, tracks=()) -> np.ndarray | None:
@@ -60,11 +66,12 @@ def camera_view(res, tracks=()) -> np.ndarray | None:
         corners = np.array([[x - hl, y - hw], [x + hl, y - hw], [x + hl, y + hw],
                             [x - hl, y + hw]])
         uv = project_cells(corners, cam, mount) * s
-        if not np.isfinite(uv).all():
+        if not np.isfinite(uv).all() or np.abs(uv).max() > 1e5:
             continue
-        cv2.polylines(img, [uv.astype(np.int32)], True, TRACK_BGR, 2, cv2.LINE_AA)
+        col, thick, label = _track_style(t)
+        cv2.polylines(img, [uv.astype(np.int32)], True, col, thick, cv2.LINE_AA)
         u, v = uv[:, 0].min(), uv[:, 1].min()
-        if 0 <= u < img.shape[1] and 0 <= v < img.shape[0]:
+        if label and 0 <= u < img.shape[1] and 0 <= v < img.shape[0]:
             _label(img, _track_label(t), (int(u), max(12, int(v) - 4)), 0.45, TRACK_BGR)
     return img
 
@@ -117,8 +124,10 @@ def grid_view(res, evidence: np.ndarray, cfg, tracks=(), height_px: int = GRID_P
         hl = max(0.2, float(t.get("length_m") or 0.5)) / 2
         tw = max(0.2, float(t.get("width_m") or 0.5)) / 2
         a, b = px(t["x_m"] + hl, t["y_m"] + tw), px(t["x_m"] - hl, t["y_m"] - tw)
-        cv2.rectangle(img, a, b, TRACK_BGR, 2)
-        _label(img, _track_label(t), (a[0], max(12, a[1] - 3)), 0.4, TRACK_BGR)
+        col, thick, label = _track_style(t)
+        cv2.rectangle(img, a, b, col, thick)
+        if label:
+            _label(img, _track_label(t), (a[0], max(12, a[1] - 3)), 0.4, col)
     _label(img, f"stop zone {stop:.1f} m at {speed:.1f} m/s, slow +{z.slow_extra_m:.0f} m",
            (8, 18), 0.45)
     return img

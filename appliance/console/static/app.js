@@ -50,10 +50,11 @@ function drawStatus(s) {
   const tracks = s.tracks || [];
   fill($("tracks").tBodies[0], tracks.map((k) => {
     const tr = document.createElement("tr");
-    cell(tr, String(k.id ?? k.track_id ?? ""));
-    cell(tr, String(k.label ?? k.class ?? ""));
+    cell(tr, String(k.id ?? ""));
     cell(tr, fmt(k.x_m));
     cell(tr, fmt(k.y_m));
+    cell(tr, k.vx_mps === undefined ? "-" : fmt(Math.hypot(k.vx_mps, k.vy_mps || 0)));
+    cell(tr, (k.sources || []).join(", ") || String(k.label ?? k.class ?? ""));
     return tr;
   }));
   $("notracks").hidden = tracks.length > 0;
@@ -65,7 +66,6 @@ async function getJSON(url) {
   return r.json();
 }
 
-let lastCycle = null;
 async function tickStatus() {
   try {
     drawStatus(await getJSON("/api/status"));
