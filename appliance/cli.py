@@ -179,15 +179,22 @@ def cmd_eval(a) -> int:
     from appliance.evaluation import evaluate_run, format_table
     from appliance.progress import Progress
     cfg = _load(a.config) if a.config else None
+    label = a.pipeline or "default perception"
+    out = getattr(a, "out", None)
+    if out:
+        parent = os.path.dirname(os.path.abspath(out))
+        if not os.path.isdir(parent):
+            raise FieldguardError(f"--out {out}: folder {parent} does not exist; create it "
+                                  f"or name a file in an existing folder")
     if a.json:
         # stdout carries the JSON only: anything printed while evaluating (a native library's
         # printf, e.g. LIBELAS's warnings) goes to stderr
         with _fd1_on_stderr():
             res = evaluate_run(a.run, a.pipeline, cfg,
-                               progress=Progress(f"eval {a.pipeline}", 1))
+                               progress=Progress(f"eval {label}", 1), out=out)
         print(json.dumps(res, indent=2, default=float))
         return 0
-    res = evaluate_run(a.run, a.pipeline, cfg, progress=Progress(f"eval {a.pipeline}", 1))
+    res = evaluate_run(a.run, a.pipeline, cfg, progress=Progress(f"eval {label}", 1), out=out)
     print(format_table(res))
     return 0
 
@@ -305,7 +312,12 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Score as docs/run-format.md defines; prints a table, or "
                                    "JSON with --json.")
     e.add_argument("run")
-    e.add_argument("--pipeline", default="fused", help="laser, stereo, stereo-novelty, rgbd, fused")
+    e.add_argument("--pipeline", default=None,
+                   help="laser, stereo, stereo-novelty, rgbd, fused (default: the box's default "
+                        "perception for the sensors the run has, or the --config's pipelines)")
+    e.add_argument("--out", metavar="FILE",
+                   help="write the box's decision for every frame as JSON Lines "
+                        "(docs/run-format.md \"The box's decisions\")")
     e.add_argument("--config")
     e.add_argument("--json", action="store_true")
     e.set_defaults(func=cmd_eval)
