@@ -334,8 +334,11 @@ class MavlinkVehicleLink(VehicleLink):
         if conn is None:
             self._stop_evt.wait(0.1)
             return
+        wait = 0.05
+        if self._hold_wanted and not self._hold_done:    # a HOLD retry is due on time, not
+            wait = max(0.0, min(wait, self._hold_next - time.monotonic()))   # up to 50 ms late
         try:
-            select.select([conn.fd], [], [], 0.05)
+            select.select([conn.fd], [], [], wait)
         except (OSError, ValueError, TypeError):
             self._stop_evt.wait(0.05)
         for _ in range(200):

@@ -54,6 +54,28 @@ def test_obstacle_distance_encoding_rules():
 
 
 # ---- through MAVProxy ------------------------------------------------------------------------------
+def _wait_until_mavproxy_forwards(out_port, vehicle):
+    """The box's first HOLD (confirmation 0) goes out on its first cycle. Sent before MAVProxy
+    has bound its out port, or before it has heard from the vehicle (it learns the master's
+    address from the first packet), it is lost, and the vehicle saw confirmations [1, 2, 3]
+    (the flaky failure seen under load). So the rig starts only once a probe's message has gone
+    through MAVProxy to the vehicle and the vehicle's heartbeat has come back."""
+    probe = mavutil.mavlink_connection(f"udpout:127.0.0.1:{out_port}", source_system=250,
+                                       source_component=1)
+    try:
+        end = time.monotonic() + 30
+        heard = False
+        while time.monotonic() < end:
+            probe.mav.system_time_send(0, int(time.monotonic() * 1000) & 0xFFFFFFFF)
+            m = probe.recv_match(type="HEARTBEAT", blocking=True, timeout=0.2)
+            heard = heard or (m is not None and m.get_srcSystem() == 1)
+            if heard and vehicle.find(ev="rx", type="SYSTEM_TIME"):
+                return
+        raise AssertionError("MAVProxy did not forward between the probe and the vehicle")
+    finally:
+        probe.close()
+
+
 @pytest.fixture(scope="module")
 def rig(tmp_path_factory):
     if MAVPROXY is None:
@@ -67,6 +89,8 @@ def rig(tmp_path_factory):
     vehicle = Peer([PY, VEHICLE, f"udpout:127.0.0.1:{pv}"])
     assert wait_for(lambda: vehicle.find(ev="ready"), 10)
     vehicle.cmd("drop 2")                     # the first two HOLD commands go unanswered
+    assert wait_for(lambda: vehicle.find(ev="ack_cmd", cmd="drop"), 5)
+    _wait_until_mavproxy_forwards(po, vehicle)
     link = MavlinkVehicleLink("link", MonotonicClock(), 0.5, sysid=SYSID,
                               connection=f"udpout:127.0.0.1:{po}", ack_timeout_s=0.2,
                               retry_max_s=0.8, distance_sensor=True)
