@@ -99,6 +99,9 @@ def cmd_selftest(a) -> int:
 def cmd_record(a) -> int:
     from appliance.status import request_json
     out = Path(a.out).resolve()
+    if getattr(a, "mcap", None):            # refuse a bad MCAP name before recording
+        from appliance.mcap_export import check_out
+        check_out(Path(a.mcap))
     try:
         doc = request_json(a.socket, f"record {a.seconds} {out}")
     except ConnectionError as exc:
@@ -117,6 +120,9 @@ def cmd_record(a) -> int:
                 print(f"\r{n} frames", end="", flush=True)
             time.sleep(0.5)
         print()
+    if getattr(a, "mcap", None):
+        from appliance.mcap_export import export_after_record
+        return export_after_record(out, a.mcap, a.seconds, a.socket)
     return 0
 
 
@@ -165,6 +171,8 @@ def register(sub) -> None:
     r.add_argument("--seconds", type=float, required=True)
     r.add_argument("--out", required=True, help="new run folder (never overwritten)")
     r.add_argument("--wait", action="store_true", help="show progress until it is written")
+    r.add_argument("--mcap", metavar="FILE.mcap",
+                   help="when it is written, export it for Foxglove as well (fieldguard export)")
     r.add_argument("--socket")
     r.set_defaults(func=cmd_record)
 

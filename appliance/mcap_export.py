@@ -18,6 +18,16 @@ from hal.errors import FieldguardError
 log = logging.getLogger("fieldguard.export")
 
 
+def check_out(out: Path, overwrite: bool = False) -> None:
+    """The MCAP file can be written: a .mcap name in an existing folder, not there yet."""
+    if out.suffix != ".mcap":
+        raise FieldguardError(f"{out}: the output must end in .mcap")
+    if out.exists() and not overwrite:
+        raise FieldguardError(f"{out} exists: give another name, or --overwrite (export)")
+    if not out.parent.is_dir():
+        raise FieldguardError(f"{out.parent} is not a folder: create it, or give another name")
+
+
 def export_run(run: str | Path, out: str | Path, cfg=None, *, overwrite: bool = False,
                progress=None) -> dict:
     """Write ``out`` (MCAP) from run folder ``run``; returns {"frames", "cycles", "topics":
@@ -36,12 +46,7 @@ def export_run(run: str | Path, out: str | Path, cfg=None, *, overwrite: bool = 
     reader = RunReader(run)                       # RunFormatError (a FieldguardError) if bad
     if not len(reader):
         raise FieldguardError(f"{run}: the run has no frames: nothing to export")
-    if out.exists() and not overwrite:
-        raise FieldguardError(f"{out} exists: give another --out, or --overwrite")
-    if out.suffix != ".mcap":
-        raise FieldguardError(f"{out}: the output must end in .mcap")
-    if not out.parent.is_dir():
-        raise FieldguardError(f"{out.parent} is not a folder: create it, or give another --out")
+    check_out(out, overwrite)
     cfg = cfg or default_config()
     cfg = dataclasses.replace(replay_config(cfg, str(run)), console=ConsoleConfig(listen=""),
                               foxglove=FoxgloveConfig(listen=""))
@@ -119,14 +124,13 @@ def cmd_export(a) -> int:
     return 0
 
 
-def export_after_record(out_run: Path, mcap: str, seconds: float, config: str | None,
-                        quiet_s: float = 1.5, stream=None) -> int:
+def export_after_record(out_run: Path, mcap: str, seconds: float, socket: str | None = None,
+                        quiet_s: float = 1.5) -> int:
     """``record --mcap``: wait until the daemon has written the recording (its time is up and
-    frames.csv has not grown for ``quiet_s``: the writer thread writes queued frames as fast as
-    it can), then export it."""
-    import sys
+    frames.csv has not grown for ``quiet_s``: the writer thread writes what is queued as fast as
+    it can), then export it with the daemon's own config (its status names the file)."""
     import time
-    stream = stream or sys.stdout
+    from appliance.status import read_status
     csv = Path(out_run) / "frames.csv"
     t_end = time.monotonic() + seconds
     last, still_since = None, time.monotonic()
@@ -140,7 +144,14 @@ def export_after_record(out_run: Path, mcap: str, seconds: float, config: str | 
             raise FieldguardError(f"the recording {out_run} did not finish within a minute of "
                                   f"its end: see the daemon's log (journalctl -u fieldguard)")
         time.sleep(0.2)
-    print(f"recorded {out_run}; exporting to {mcap}", file=stream, flush=True)
+    config = None
+    try:
+        src = read_status(socket).get("config")
+        config = src if src and Path(src).is_file() else None
+    except (ConnectionError, OSError, ValueError):
+        pass
+    print(f"recorded {out_run}; exporting it to {mcap} (config: {config or 'defaults'})",
+          flush=True)
     from types import SimpleNamespace
     return cmd_export(SimpleNamespace(run=str(out_run), out=mcap, config=config,
                                       overwrite=False))

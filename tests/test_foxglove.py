@@ -206,3 +206,31 @@ def test_live_server_on_a_taken_port_is_one_log_line_and_the_box_runs_on(tmp_pat
     assert len(msgs) == 1 and f"127.0.0.1:{port}" in msgs[0] and "runs on" in msgs[0]
     assert st["cycles"] == 10 and st["console"]["foxglove"] is None
     assert "foxglove" in st["console"]["errors"][0]
+
+
+def test_record_mcap_records_then_exports_for_foxglove(tmp_path, capsys):
+    import threading
+    cfg = dataclasses.replace(default_config(), console=ConsoleConfig(listen=""))
+    sock = str(tmp_path / "s.sock")
+    d = Daemon(sim_config(cfg), mode="sim", pace=1.0, status_socket=sock)
+    d.start()
+    th = threading.Thread(target=d.run, daemon=True)
+    th.start()
+    try:
+        # a bad MCAP name is refused before anything is recorded
+        assert main(["record", "--seconds", "1", "--out", str(tmp_path / "r0"), "--mcap",
+                     str(tmp_path / "r0.txt"), "--socket", sock]) == 2
+        assert ".mcap" in capsys.readouterr().err and not (tmp_path / "r0").exists()
+        assert main(["record", "--seconds", "1", "--out", str(tmp_path / "rec"), "--mcap",
+                     str(tmp_path / "rec.mcap"), "--socket", sock]) == 0
+    finally:
+        d.request_stop()
+        th.join(10)
+        d.shutdown()
+    assert "wrote" in capsys.readouterr().out
+    from drivers.runfolder import RunReader
+    frames = len(RunReader(tmp_path / "rec"))
+    topics, _ = read_mcap(tmp_path / "rec.mcap")
+    assert frames >= 5
+    assert topics["/recording/state"][2] == frames and topics["/laser"][2] == frames
+    assert topics["/grid"][0] == "foxglove.Grid" and topics["/grid"][2] >= frames

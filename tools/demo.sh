@@ -5,4 +5,5 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 bash tools/setup.sh
 if [ $# -eq 0 ]; then set -- --sim --duration 60; fi
+echo "fieldguard: web console (read-only) at http://127.0.0.1:8080/ while it runs (docs/console.md)"
 exec .venv/bin/fieldguard run --print-every 2 "$@"
