@@ -23,7 +23,7 @@ from drivers.can_link import DEFAULT_DBC, CanJ1939VehicleLink  # noqa: E402
 from drivers.j1939 import AddressClaimer, ClaimState, J1939Name, crc8_sae_j1850, make_id  # noqa: E402
 from hal import GateState, MonotonicClock  # noqa: E402
 from hal.health import Health  # noqa: E402
-from tests.peers.rig import PY, ROOT, LoopRig, Peer, wait_for  # noqa: E402
+from tools.linkrig import PY, ROOT, LoopRig, Peer, wait_for  # noqa: E402
 
 GROUP = "239.74.163.2"
 CLONE_NEWNET = 0x40000000
@@ -107,7 +107,7 @@ def netns():
 def canrig(netns):
     peer = Peer([PY, str(ROOT / "tests/peers/j1939_peer.py"), "udp_multicast", GROUP, "0x80",
                  PEER_NAME])
-    vehicle = Peer([PY, str(ROOT / "tests/peers/can_vehicle.py"), "udp_multicast", GROUP,
+    vehicle = Peer([PY, str(ROOT / "drivers/emulators/can_vehicle.py"), "udp_multicast", GROUP,
                     DEFAULT_DBC])
     assert wait_for(lambda: peer.find(ev="ready") and vehicle.find(ev="ready"), 15), \
         peer.proc.stderr and "peers did not start"

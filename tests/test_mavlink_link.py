@@ -21,9 +21,9 @@ from drivers.mavlink_link import UINT16_MAX, MavlinkVehicleLink, obstacle_distan
 from hal import GateState, MonotonicClock  # noqa: E402
 from hal.health import Health  # noqa: E402
 from hal.types import ObstacleSector  # noqa: E402
-from tests.peers.rig import PY, ROOT, LoopRig, Peer, free_udp_port, wait_for  # noqa: E402
+from tools.linkrig import PY, ROOT, LoopRig, Peer, free_udp_port, wait_for  # noqa: E402
 
-VEHICLE = str(ROOT / "tests" / "peers" / "mav_vehicle.py")
+VEHICLE = str(ROOT / "drivers" / "emulators" / "mav_vehicle.py")
 MAVPROXY = shutil.which("mavproxy.py", path=str(Path(sys.executable).parent)) or \
     shutil.which("mavproxy.py")
 SYSID = 42

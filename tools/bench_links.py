@@ -27,7 +27,7 @@ os.environ.setdefault("MAVLINK20", "1")
 
 
 def run(link, cycles: int, age_s: float) -> np.ndarray:
-    from tests.peers.rig import LoopRig
+    from tools.linkrig import LoopRig
     rig = LoopRig(link, hold_off_s=0.3)
     rig.laser.age_s = age_s
     rig.laser.put_obstacle(12.0, 1.0)        # something to carry in the sectors

@@ -1,5 +1,6 @@
-"""Helpers for the link tests: a peer process with JSON events on stdout, free ports, waiting,
-and the real appliance loop with a hand-driven laser and the link under test, run at 10 Hz."""
+"""The link rig, shared by the link tests, tools/bench_links.py and tools/soak.py: a peer process
+with JSON events on stdout (the vehicle emulators in drivers/emulators), free ports, waiting, and
+the real appliance loop with a hand-driven laser and the link under test, run at 10 Hz."""
 from __future__ import annotations
 
 import json
@@ -11,7 +12,7 @@ import threading
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[1]
 PY = sys.executable
 
 
@@ -77,7 +78,7 @@ class LoopRig:
         from appliance.config import Config, GateConfig, GridConfig
         from appliance.loop import ApplianceLoop
         from appliance.perception import make_pipeline
-        from tests.fakes import HandLaser
+        from drivers.emulators.hand_laser import HandLaser
         cfg = Config(gate=GateConfig(hold_off_s=hold_off_s), grid=GridConfig(occupied_at=1.0))
         self.clock = link.clock
         self.laser = HandLaser("laser", self.clock)

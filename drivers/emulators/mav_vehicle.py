@@ -1,6 +1,7 @@
-"""A scripted MAVLink vehicle (ArduPilot Rover-like), a separate process for the link tests.
+"""A scripted MAVLink vehicle (ArduPilot Rover-like) in its own process: the vehicle side for the
+link tests, tools/bench_links.py and the soak (tools/soak.py).
 
-    python tests/peers/mav_vehicle.py CONNECTION [--sysid 1]
+    python -m drivers.emulators.mav_vehicle CONNECTION [--sysid 1]
 
 Sends HEARTBEAT (1 Hz, custom_mode = current mode), ATTITUDE and VFR_HUD (20 Hz); answers
 MAV_CMD_DO_SET_MODE with COMMAND_ACK according to the script. Reads commands on stdin, one per

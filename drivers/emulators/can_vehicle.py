@@ -1,6 +1,6 @@
-"""The vehicle side of the CAN contract, a separate process for the link tests.
+"""The vehicle side of the CAN contract in its own process (the link tests and the soak).
 
-    python tests/peers/can_vehicle.py INTERFACE CHANNEL DBC
+    python -m drivers.emulators.can_vehicle INTERFACE CHANNEL DBC
 
 Sends wheel-based speed (PGN 65096, SA 0xF0) at 10 Hz; decodes every frame from the box with
 cantools from the shipped DBC, and applies the contract: STOP unless a FG_SafetyStatus with a
@@ -17,7 +17,7 @@ import time
 import can
 import cantools
 
-sys.path.insert(0, __file__.rsplit("/tests/", 1)[0])
+sys.path.insert(0, __file__.rsplit("/drivers/", 1)[0])
 from drivers.j1939 import J1939Id, crc8_sae_j1850, make_id  # noqa: E402
 
 
