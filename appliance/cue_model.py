@@ -113,8 +113,12 @@ class CueModel:
 
     # ---- validation: every departure names the file and what was expected --------------------
     def _validate(self) -> CueModelInfo:
-        meta = dict(self._session.get_modelmeta().custom_metadata_map or {})
         fail = lambda msg: CueModelError(msg, file=self.path)  # noqa: E731
+        try:
+            meta = dict(self._session.get_modelmeta().custom_metadata_map or {})
+        except UnicodeDecodeError:          # found by tests/fuzz/fuzz_cue_model.py
+            raise fail("its metadata is not UTF-8 text (expected a file written by "
+                       "`fieldguard train-cue`)") from None
         if "fieldguard_cue_version" not in meta:
             raise fail("not a fieldguard cue model: its metadata has no fieldguard_cue_version "
                        "(expected a file written by `fieldguard train-cue`)")

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 import zipfile
+import zlib
 from contextlib import ExitStack
 from importlib import resources
 from pathlib import Path
@@ -53,6 +54,9 @@ def default_model_path() -> Path:
 
 
 _RESOURCES = ExitStack()
+
+
+MAX_MODEL_BYTES = 64 << 20      # unpacked; the shipped model is ~40 kB
 
 
 class RgbdModelError(ConfigError):
@@ -92,9 +96,17 @@ def load(path: str | Path | None = None) -> RgbdClassModel:
         raise RgbdModelError(f"{where}: no such file (train one with `fieldguard train-classes`)",
                              key="perception.rgbd.model")
     try:
+        # what the archive says it unpacks to, before unpacking (a forged size would make
+        # np.load allocate it): found by tests/fuzz/fuzz_annotations.py, as was zlib.error
+        with zipfile.ZipFile(p) as zf:
+            unpacked = sum(i.file_size for i in zf.infolist())
+        if unpacked > MAX_MODEL_BYTES:
+            raise RgbdModelError(f"{where}: unpacks to {unpacked} bytes, more than a class "
+                                 f"model can be ({MAX_MODEL_BYTES})",
+                                 key="perception.rgbd.model")
         with np.load(p, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, zlib.error) as exc:
         raise RgbdModelError(f"{where}: not a readable model file ({exc})",
                              key="perception.rgbd.model") from None
     if "format" not in data or str(data["format"]) != FORMAT:

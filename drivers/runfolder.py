@@ -297,6 +297,39 @@ def _parse_frames(info: RunInfo) -> list[FrameRecord]:
 # ---------------------------------------------------------------------------------------------
 # per-frame files
 # ---------------------------------------------------------------------------------------------
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def _png_layout_error(data: bytes, w: int, h: int) -> str | None:
+    """What is wrong with a PNG's chunk layout, checked before decoding: every chunk must fit
+    in the file and the size must be the calibration's. (OpenCV spends ~16 s on a 94-byte PNG
+    whose IDAT claims 3 GB, and allocates what a forged IHDR says: found by
+    tests/fuzz/fuzz_runfolder.py.)"""
+    if not data:
+        return None                                  # "not a readable image" below
+    if not data.startswith(_PNG_SIGNATURE):
+        return "not a PNG file (the run format stores PNG images)"
+    pos = len(_PNG_SIGNATURE)
+    first = True
+    while pos + 12 <= len(data):
+        n = int.from_bytes(data[pos:pos + 4], "big")
+        kind = data[pos + 4:pos + 8]
+        if n > len(data) - pos - 12:
+            return f"corrupt PNG: {kind!r} chunk of {n} bytes runs past the end of the file"
+        if first:
+            if kind != b"IHDR" or n != 13:
+                return "corrupt PNG: it does not start with an IHDR chunk"
+            pw = int.from_bytes(data[pos + 8:pos + 12], "big")
+            ph = int.from_bytes(data[pos + 12:pos + 16], "big")
+            if (pw, ph) != (w, h):
+                return f"image is {pw}x{ph}, run.toml says {w}x{h}"
+            first = False
+        if kind == b"IEND":
+            return None
+        pos += 12 + n
+    return "corrupt PNG: cut short (no IEND chunk)"
+
+
 def _read_png(file: Path, depth: bool, size: tuple[int, int]) -> np.ndarray | None:
     """A colour PNG as HxWx3 uint8 BGR, or a depth PNG as HxW uint16; None if the file is
     missing; RunFormatError if it is unreadable or of the wrong kind or size."""
@@ -306,10 +339,13 @@ def _read_png(file: Path, depth: bool, size: tuple[int, int]) -> np.ndarray | No
         return None
     except OSError as exc:
         raise RunFormatError(f"{file}: cannot read: {exc}") from None
+    w, h = size
+    bad = _png_layout_error(data.tobytes(), w, h)
+    if bad:
+        raise RunFormatError(f"{file}: {bad}")
     img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if img is None:
         raise RunFormatError(f"{file}: not a readable image (corrupt or empty)")
-    w, h = size
     if depth:
         if img.ndim != 2 or img.dtype != np.uint16:
             raise RunFormatError(f"{file}: depth must be a 16-bit single-channel PNG, got "

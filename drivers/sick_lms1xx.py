@@ -150,11 +150,15 @@ class ScanTelegram:
         return r.astype(np.float32)
 
 
+_HEX_DIGITS = b"0123456789ABCDEFabcdef"
+
+
 def _hex(tok: bytes, what: str) -> int:
-    try:
-        return int(tok, 16)
-    except ValueError:
-        raise ColaError(f"bad telegram: {what} {tok[:16]!r} is not hexadecimal") from None
+    # digits only: int(x, 16) also takes a sign, "0x" and "_" (a value count of "-7BB" once
+    # walked the parser backwards: found by tests/fuzz/fuzz_cola.py)
+    if not tok or tok.strip(_HEX_DIGITS):
+        raise ColaError(f"bad telegram: {what} {tok[:16]!r} is not hexadecimal")
+    return int(tok, 16)
 
 
 def _int32(tok: bytes, what: str) -> int:
@@ -224,10 +228,15 @@ def parse_scandata(payload: bytes) -> ScanTelegram:
             if count == 0 or count > 10000 or step <= 0:
                 raise ColaError(f"bad telegram: {name} has {count} values, step {step}")
             toks = take(count)
+            if any(not x or x.strip(_HEX_DIGITS) for x in toks):
+                raise ColaError(f"bad telegram: a {name} value is not hexadecimal")
             try:
                 vals = np.array([int(x, 16) for x in toks], dtype=np.int64)
             except ValueError:
                 raise ColaError(f"bad telegram: a {name} value is not hexadecimal") from None
+            except OverflowError:       # more than 64 bits (found by tests/fuzz/fuzz_cola.py)
+                raise ColaError(f"bad telegram: a {name} value does not fit in {bits} "
+                                "bits") from None
             if vals.max(initial=0) >= (1 << bits):
                 raise ColaError(f"bad telegram: a {name} value does not fit in {bits} bits")
             out[name] = ColaChannel(name, scale, offset, start, step,

@@ -1,0 +1,47 @@
+"""status: request lines on the daemon's status socket.
+
+The input is what a local client writes on the socket. It goes through the server's request
+reading rules (first line, at most MAX_REQUEST + 1 bytes) into ``StatusServer.answer`` with a
+real daemon behind it (the simulated box, started, three cycles run, so ``snapshot`` has a
+picture): ``status``, ``snapshot``, ``selftest``, ``record SECONDS PATH``, ``record-status``
+and anything else. ``answer`` must return bytes for every input (a PNG for a snapshot, else
+one JSON document) and never raise. ``record`` jobs are dropped after each input and the
+loop does not run again, so no recording is written anywhere. The real socket (slow,
+oversized, many clients, a running daemon) is tests/test_status_socket.py."""
+from __future__ import annotations
+
+import json
+
+from tests.fuzz.common import scratch_dir
+
+_server = None
+_daemon = None
+
+
+def setup():
+    global _server, _daemon
+    if _server is not None:
+        return _server
+    from appliance.config import default_config
+    from appliance.daemon import Daemon, sim_config
+    from appliance.status import StatusServer
+    _daemon = Daemon(sim_config(default_config()), mode="sim", pace=0.0, serve_status=False)
+    _daemon.start()
+    _daemon.run(max_cycles=3)
+    _server = StatusServer(str(scratch_dir("status") / "status.sock"), _daemon.status,
+                           _daemon.handle)
+    return _server
+
+
+def one_input(data: bytes) -> None:
+    from appliance.status import MAX_REQUEST
+    server = setup()
+    raw = data[:MAX_REQUEST + 1].split(b"\n", 1)[0].rstrip(b"\r")
+    out = server.answer(raw)
+    assert isinstance(out, bytes) and out
+    with _daemon.recorder._lock:
+        _daemon.recorder._live.clear()
+    if out.startswith(b"\x89PNG"):
+        return
+    doc = json.loads(out)
+    assert isinstance(doc, dict)

@@ -1,0 +1,6 @@
+"""Third-party packages whose parsers a target also instruments (coverage inside them guides
+the search towards inputs that get through them to ours)."""
+EXTRA = {
+    "mavlink": ["pymavlink"],
+    "j1939": ["cantools", "can"],
+}

@@ -1,0 +1,33 @@
+"""Coverage-guided run of one target under atheris (libFuzzer): ``python -m tests.fuzz.run
+TARGET [libFuzzer options] [CORPUS_DIR ...]``. tools/fuzz.sh is the usual way in."""
+from __future__ import annotations
+
+import importlib
+import os
+import sys
+
+from tests.fuzz.common import TARGETS
+
+
+def main() -> None:
+    import atheris
+    if len(sys.argv) < 2 or sys.argv[1] not in TARGETS:
+        sys.exit(f"usage: python -m tests.fuzz.run TARGET [libFuzzer args]; targets: "
+                 f"{' '.join(TARGETS)}")
+    name = sys.argv[1]
+    mod_name = "tests.fuzz." + TARGETS[name]
+    # instrument the project's own code (and the target's extra third-party parsers) for
+    # coverage feedback; everything else runs uninstrumented
+    extra = importlib.import_module("tests.fuzz.instrument").EXTRA.get(name, [])
+    with atheris.instrument_imports(include=["hal", "drivers", "appliance", *extra]):
+        mod = importlib.import_module(mod_name)
+    if hasattr(mod, "setup"):
+        mod.setup()
+    # libFuzzer's -merge runs argv[0] again: tools/fuzz.sh points it at an executable wrapper
+    argv0 = os.environ.get("FUZZ_ARGV0") or sys.argv[0]
+    atheris.Setup([argv0] + sys.argv[2:], mod.one_input)
+    atheris.Fuzz()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,50 @@
+"""A few seconds of every fuzz target (tests/fuzz/): the committed corpus, then seeded random
+mutations of it, each input under a time limit. Any exception outside the project's error
+family, or a hang, fails with the input written to tests/fuzz/crashes/ (the long,
+coverage-guided runs are tools/fuzz.sh TARGET MINUTES; figures in docs/reliability.md)."""
+import importlib
+import time
+
+import pytest
+
+from tests.fuzz.common import TARGETS, corpus_files, mutations, time_limit
+
+SECONDS = 2.5          # of mutations per target, after the corpus
+LIMIT_S = 10.0         # one input (the status target's snapshot takes ~0.1 s)
+
+
+def _crash(target: str, data: bytes) -> str:
+    from tests.fuzz.common import ROOT
+    d = ROOT / "tests" / "fuzz" / "crashes"
+    d.mkdir(exist_ok=True)
+    import hashlib
+    p = d / f"{target}-{hashlib.sha1(data).hexdigest()[:12]}"
+    p.write_bytes(data)
+    return str(p)
+
+
+@pytest.mark.parametrize("target", list(TARGETS))
+def test_fuzz_target_short(target):
+    mod = importlib.import_module("tests.fuzz." + TARGETS[target])
+    if hasattr(mod, "setup"):
+        mod.setup()
+    seeds = [p.read_bytes() for p in corpus_files(target)]
+    assert seeds, f"no corpus for {target} (tests/fuzz/corpus/{target}/)"
+    n = 0
+    end = None
+    for data in [*seeds, *mutations(seeds, 100000, seed=sum(map(ord, target)))]:
+        if n == len(seeds):
+            end = time.monotonic() + SECONDS
+        elif end is not None and time.monotonic() > end:
+            break
+        try:
+            with time_limit(LIMIT_S):
+                mod.one_input(data)
+        except BaseException as exc:
+            if isinstance(exc, (KeyboardInterrupt, SystemExit)):
+                raise
+            pytest.fail(f"{target}: {type(exc).__name__}: {exc} on input {data[:80]!r}... "
+                        f"(saved as {_crash(target, data)}; replay: .venv/bin/python -m "
+                        f"tests.fuzz.run {target} FILE)")
+        n += 1
+    assert n > len(seeds)
