@@ -51,6 +51,12 @@ if str(ROOT) not in sys.path:
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
+# the closed-loop driving is the campaign's (fieldguard campaign): the same config, the same
+# daemon start; this tool keeps its own accounting and plot for one long run
+from appliance.campaign_drive import deep_merge as _deep_merge  # noqa: E402,F401
+from appliance.campaign_drive import drive_config_data, rss_mb, start_sim_daemon  # noqa: E402
+from appliance.campaign_drive import to_toml as _toml  # noqa: E402
+
 CSV_FIELDS = ("t_s", "cycles", "distance_m", "lane", "x_m", "y_m", "speed_mps", "state",
               "collisions", "stops_true", "stops_false", "stops_early", "stops_fault",
               "false_stop_s", "stopped_s", "detours", "overrides", "model_samples",
@@ -63,51 +69,8 @@ EVENT_FIELDS = ("t_s", "event", "kind", "x_m", "y_m", "lane", "speed_mps", "stop
 HISTORY_S = 10.0            # what the box saw, kept to explain a collision
 
 
-def rss_mb() -> float:
-    """Resident set size of this process (Linux /proc), MB."""
-    try:
-        with open("/proc/self/statm") as f:
-            pages = int(f.read().split()[1])
-        return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
-    except (OSError, ValueError, IndexError):
-        import resource
-        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
 def _pct(a, q) -> float | None:
     return None if len(a) == 0 else round(float(np.percentile(np.asarray(a, float), q)), 2)
-
-
-def _deep_merge(a: dict, b: dict) -> dict:
-    out = dict(a)
-    for k, v in b.items():
-        out[k] = _deep_merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) \
-            else v
-    return out
-
-
-def _toml(data: dict, prefix: str = "") -> str:
-    """A small TOML writer for the config tables we build (scalars, lists, nested tables)."""
-    def val(v):
-        if isinstance(v, bool):
-            return "true" if v else "false"
-        if isinstance(v, str):
-            return json.dumps(v)
-        if isinstance(v, (list, tuple)):
-            return "[" + ", ".join(val(x) for x in v) + "]"
-        return repr(v)
-    lines, tables = [], []
-    for k, v in data.items():
-        if isinstance(v, dict):
-            tables.append((k, v))
-        else:
-            lines.append(f"{k} = {val(v)}")
-    out = "\n".join(lines) + ("\n" if lines else "")
-    for k, v in tables:
-        name = f"{prefix}.{k}" if prefix else k
-        name_q = ".".join(json.dumps(p) if "-" in p else p for p in name.split("."))
-        out += f"\n[{name_q}]\n" + _toml(v, name)
-    return out
 
 
 class LongRun:
@@ -142,38 +105,21 @@ class LongRun:
 
     # ---- set-up ------------------------------------------------------------------------------
     def config_data(self) -> dict:
-        from drivers.sim.scenes import build_scene
-        sc = build_scene(self.scene, self.seed)
-        rear, length, _width = sc.footprint
-        data: dict = {
-            "perception": {"pipelines": list(self.pipeline_names)},
-            # the box's zones start at the simulated vehicle's front bumper
-            "zones": {"front_x_m": round(-rear + length, 3)},
-            "sim": {"scene": self.scene, "seed": self.seed, "stereo_scale": self.stereo_scale,
-                    "pace": 0.0},
-        }
-        if self.matcher and "stereo-novelty" in self.pipeline_names:
-            data["perception"]["stereo-novelty"] = {"matcher": self.matcher}
+        extra: dict = {}
         if self.config_file:
             import tomllib
-            data = _deep_merge(data, tomllib.loads(Path(self.config_file).read_text("utf-8")))
-        data = _deep_merge(data, self.overrides)
-        data["sim"] = _deep_merge(data.get("sim", {}), {"scene": self.scene, "seed": self.seed,
-                                                        "stereo_scale": self.stereo_scale})
-        return data
+            extra = tomllib.loads(Path(self.config_file).read_text("utf-8"))
+        return drive_config_data(self.scene, self.seed, stereo_scale=self.stereo_scale,
+                                 pipelines=self.pipeline_names, matcher=self.matcher,
+                                 extra=_deep_merge(extra, self.overrides))
 
     def build(self) -> "LongRun":
-        from appliance.config import parse_config
-        from appliance.daemon import Daemon, sim_config
         self.out.mkdir(parents=True, exist_ok=True)
         data = self.config_data()
         (self.out / "config.toml").write_text(_toml(data), encoding="utf-8")
-        cfg = sim_config(parse_config(data, str(self.out / "config.toml")), self.scene)
+        cfg, d, self.field = start_sim_daemon(data, str(self.out / "config.toml"))
         self.cfg = cfg
-        d = Daemon(cfg, mode="sim", pace=0.0, serve_status=False)
-        d.start()
         self.daemon = d
-        self.field = d.shared["sim_hub"].field
         self.vehicle = self.field.vehicle
         self.zones = cfg.zones
         self.n_cycles = int(round(self.minutes * 60.0 * cfg.loop.rate_hz))

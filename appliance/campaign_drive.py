@@ -1,0 +1,493 @@
+"""One drive of a campaign: the real daemon in lock-step with the simulated field, scored on what
+the vehicle was told.
+
+A drive is one (scene kind, seed): the daemon is built in-process exactly as ``fieldguard run
+--sim KIND --config F --fast`` builds it (``sim_config`` + ``Daemon(mode="sim", pace=0)``), the
+simulated sensors and vehicle on one ManualClock; the gate's STOP / SLOW drive the simulated
+vehicle, whose safety driver steers round real obstacles it was stopped for (detours) and
+overrides a false stop after 10 s (overrides), so a drive of hours goes on.
+
+Scored every cycle against the simulator's truth (:class:`Drive.on_cycle`):
+
+- ``collisions``: the vehicle's footprint reached an obstacle's (the sim vehicle counts them);
+- STOP episodes for an obstacle (the gate's reason names the stop zone) are ``true`` when a real
+  obstacle's footprint lies in the box's own stop zone of that cycle (+- ``zone_tol_m`` along,
+  ``lateral_tol_m`` across: the 0.1 m grid and the one-cycle latency of the two-hit rule), else
+  ``false``, with a cause (the gate's reason with its numbers taken out, the pipelines whose
+  points lay in the stop zone, ``early`` when a real obstacle was in the corridor just beyond)
+  and a place (``near an obstacle``: a real one within ``near_m`` of the stop zone;
+  ``headland``: off the lanes, in a turn; else ``lane``); episodes for a fault are ``fault``;
+- missed stops: a real obstacle deep in the stop zone (``zone_tol_m`` / ``lateral_tol_m`` inside
+  it) while the box did not say STOP, one per obstacle encounter;
+- detection distance: for the obstacle of each true stop, how far ahead of the front it was when
+  the box's occupied cells first lay on it (within ``hold_m``) in an unbroken run of cycles up to
+  the stop; per class.
+
+Reproducible: after each cycle the drive waits for the novelty model's update thread (on a
+vehicle the update finishes well inside the 100 ms period; with ``pace=0`` it would race the
+loop), OpenCV runs one thread, and every random draw is seeded by (kind, seed): the same drive
+gives the same figures in any process on any machine.
+
+Nothing here writes files: :meth:`Drive.run` returns the result, the per-cycle rows and the
+events; the campaign (appliance/campaign.py) writes them, wherever the drive ran.
+"""
+from __future__ import annotations
+
+import math
+import os
+import re
+import time
+from collections import deque
+
+import numpy as np
+
+# default pipelines per scene kind: today's pipelines for the kind's sensors
+DEFAULT_PIPELINES = {"stubble-coverage": ("stereo-novelty",),
+                     "stubble-coverage-night": ("stereo-novelty",),
+                     "greenhouse-coverage": ("rgbd",)}
+ROW_FIELDS = ("t_s", "x_m", "y_m", "yaw_deg", "speed_mps", "state", "reason", "nearest_m",
+              "stop_zone_m", "cells", "real_nearest_m", "real_obstacle", "place",
+              "collisions", "stops_true", "stops_false", "missed_stops", "detours", "overrides",
+              "model_samples", "acquire_ms", "perception_ms", "fusion_ms", "gate_ms", "send_ms",
+              "render_cpu_ms", "pipeline_cpu_ms")
+STAGES = ("acquire", "perception", "fusion", "gate", "send")
+_NUM = re.compile(r"-?\d+(\.\d+)?")
+
+
+def rss_mb() -> float:
+    """Resident set size of this process (Linux /proc), MB."""
+    try:
+        with open("/proc/self/statm") as f:
+            pages = int(f.read().split()[1])
+        return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except (OSError, ValueError, IndexError):
+        import resource
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def pct(a, q) -> float | None:
+    return None if len(a) == 0 else round(float(np.percentile(np.asarray(a, float), q)), 2)
+
+
+def deep_merge(a: dict, b: dict) -> dict:
+    out = dict(a)
+    for k, v in b.items():
+        out[k] = deep_merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) \
+            else v
+    return out
+
+
+def to_toml(data: dict, prefix: str = "") -> str:
+    """A small TOML writer for the config tables we build (scalars, lists, nested tables)."""
+    import json
+
+    def val(v):
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, str):
+            return json.dumps(v)
+        if isinstance(v, (list, tuple)):
+            return "[" + ", ".join(val(x) for x in v) + "]"
+        return repr(v)
+    lines, tables = [], []
+    for k, v in data.items():
+        if isinstance(v, dict):
+            tables.append((k, v))
+        else:
+            lines.append(f"{k} = {val(v)}")
+    out = "\n".join(lines) + ("\n" if lines else "")
+    for k, v in tables:
+        name = f"{prefix}.{k}" if prefix else k
+        name_q = ".".join(json.dumps(p) if "-" in p else p for p in name.split("."))
+        out += f"\n[{name_q}]\n" + to_toml(v, name)
+    return out
+
+
+def drive_config_data(kind: str, seed: int, *, stereo_scale: float = 0.25,
+                      pipelines=None, matcher: str | None = "sgbm",
+                      extra: dict | None = None) -> dict:
+    """The config (as TOML data) a drive's daemon runs: the kind's pipelines, the box's zones
+    from the simulated vehicle's front bumper, the sim table; ``extra`` (a --config file's
+    tables) merged over it; the scene, seed and stereo scale always the drive's."""
+    from drivers.sim.scenes import build_scene
+    sc = build_scene(kind, seed)
+    rear, length, _width = sc.footprint
+    if pipelines is None:
+        pipelines = DEFAULT_PIPELINES.get(
+            kind, ("rgbd",) if sc.illumination == "greenhouse" else ("stereo-novelty",))
+    data: dict = {
+        "perception": {"pipelines": list(pipelines)},
+        "zones": {"front_x_m": round(-rear + length, 3)},
+        "sim": {"scene": kind, "seed": int(seed), "stereo_scale": float(stereo_scale),
+                "pace": 0.0},
+    }
+    if matcher and "stereo-novelty" in pipelines:
+        data["perception"]["stereo-novelty"] = {"matcher": matcher}
+    if extra:
+        data = deep_merge(data, extra)
+    data["sim"] = deep_merge(data.get("sim", {}), {"scene": kind, "seed": int(seed),
+                                                   "stereo_scale": float(stereo_scale)})
+    return data
+
+
+def start_sim_daemon(data: dict, source: str):
+    """(cfg, daemon, field): the daemon ``fieldguard run --sim KIND --config F --fast`` would
+    build from the config data, started, lock-step with its simulated field (pace 0, no status
+    socket)."""
+    from appliance.config import parse_config
+    from appliance.daemon import Daemon, sim_config
+    cfg = sim_config(parse_config(data, source), data["sim"]["scene"])
+    d = Daemon(cfg, mode="sim", pace=0.0, serve_status=False)
+    d.start()
+    return cfg, d, d.shared["sim_hub"].field
+
+
+def cause_of(reason: str) -> str:
+    """The gate's reason without its numbers: 'obstacle # m ahead in the stop zone (# m)'."""
+    return _NUM.sub("#", reason).strip()
+
+
+class Drive:
+    """One closed-loop drive. ``build()`` starts the daemon; ``run()`` drives it for the
+    configured time and returns ``{"result", "rows", "events"}``; tests may reach
+    ``self.daemon`` / ``self.field`` between the two."""
+
+    def __init__(self, kind: str, seed: int, minutes: float, *, config_data: dict | None = None,
+                 stereo_scale: float = 0.25, every: int = 1, zone_tol_m: float = 0.5,
+                 lateral_tol_m: float = 0.2, near_m: float = 3.0, hold_m: float = 0.3,
+                 sync_updates: bool = True, progress=None, progress_every: int = 300):
+        self.kind, self.seed = kind, int(seed)
+        self.minutes = float(minutes)
+        self.stereo_scale = float(stereo_scale)
+        self.config_data = config_data if config_data is not None else drive_config_data(
+            kind, seed, stereo_scale=stereo_scale)
+        self.every = max(1, int(every))
+        self.zone_tol_m, self.lateral_tol_m = float(zone_tol_m), float(lateral_tol_m)
+        self.near_m, self.hold_m = float(near_m), float(hold_m)
+        self.sync_updates = bool(sync_updates)
+        self.progress, self.progress_every = progress, max(1, int(progress_every))
+        self.daemon = None
+        self.field = None
+        self.events: list[dict] = []
+        self.rows: list[dict] = []
+
+    # ---- set-up ------------------------------------------------------------------------------
+    def build(self) -> "Drive":
+        data = deep_merge(self.config_data, {"sim": {"scene": self.kind, "seed": self.seed}})
+        cfg, d, self.field = start_sim_daemon(data, f"<campaign {self.kind} {self.seed}>")
+        self.cfg = cfg
+        self.daemon = d
+        self.vehicle = self.field.vehicle
+        self.scene = self.field.scene
+        self.zones = cfg.zones
+        self.rate = cfg.loop.rate_hz
+        self.n_cycles = int(round(self.minutes * 60.0 * self.rate))
+        self._pipe_cpu: list[float] = []
+        self._render_cpu: list[float] = []
+        for p in d.pipelines:
+            p.process = self._timed(p.process, self._pipe_cpu)
+        self.field.render = self._timed(self.field.render, self._render_cpu)
+        self._novelty = [p.novelty for p in d.pipelines if hasattr(p, "novelty")]
+        self._stage: dict[str, list[float]] = {s: [] for s in STAGES}
+        self._cycle_ms: list[float] = []
+        self.model_samples: list[int] = []
+        self.model_bound = None
+        self._rss: list[float] = []
+        # accounting state
+        self._prev_state = None
+        self._episode = None            # the STOP episode in progress (its event dict)
+        self.counts = {"true": 0, "false": 0, "fault": 0}
+        self.missed = 0
+        self._missed_open: set[int] = set()   # obstacles in the zone whose miss is counted
+        self._streak: dict[int, float] = {}   # obstacle index -> ahead_m when the hold began
+        self._detected: set[int] = set()      # obstacles with a detection distance already
+        self.detections: list[dict] = []
+        self.false_stop_s = 0.0
+        self._prev_collisions = 0
+        self._history = deque(maxlen=int(10 * self.rate))
+        p = self.scene.path
+        seg = np.hypot(np.diff(p[:, 0]), np.diff(p[:, 1]))
+        self._path_s = np.concatenate([[0.0], np.cumsum(seg)])
+        heading = np.unwrap(np.arctan2(np.gradient(p[:, 1]), np.gradient(p[:, 0])))
+        self._path_turn = np.abs(np.gradient(heading)) > 1e-3
+        d.loop.on_cycle.append(self.on_cycle)
+        return self
+
+    @staticmethod
+    def _timed(fn, cpu: list):
+        def wrapper(*a, **k):
+            c0 = time.thread_time()
+            try:
+                return fn(*a, **k)
+            finally:
+                cpu.append((time.thread_time() - c0) * 1e3)
+        return wrapper
+
+    # ---- truth -------------------------------------------------------------------------------
+    def headland(self) -> bool:
+        """Off the lanes: the scene says so (``Scene.zone_at``), else the path is turning
+        within 3 m of here (coverage U-turns)."""
+        s = min(max(self.vehicle.s, 0.0), self.vehicle.path_length_m)
+        f = getattr(self.scene, "zone_at", None)
+        if callable(f):
+            return f(s) == "headland"
+        near = np.abs(self._path_s - s) <= 3.0
+        return bool(np.any(self._path_turn[near]))
+
+    def truth(self, stop_len_m: float) -> list[dict]:
+        """Real obstacles near the vehicle (the simulator's world, hit ones included): per
+        obstacle its index, id, class, ``ahead`` (nearest corridor point from the front, inf
+        when none), ``d_zone`` (distance of its footprint to the stop zone rectangle), ``pts``
+        (footprint in the level vehicle frame), ``in_stop`` (with the tolerances), ``deep``
+        (the tolerances inside the stop zone)."""
+        z = self.zones
+        rear = self.scene.footprint[0]
+        x, y, _ = self.vehicle.pose()
+        out = []
+        fx, hw = z.front_x_m, z.half_width_m
+        for k, o in enumerate(self.field.world.obstacles):
+            if math.hypot(o.x - x, o.y - y) > o.radius + fx + 45.0:
+                continue
+            p = self.vehicle.footprint_in_vehicle(k)
+            if not len(p):
+                continue
+            ay = np.abs(p[:, 1])
+            corridor = (ay <= hw + self.lateral_tol_m) & (p[:, 0] >= -rear)
+            ahead = float((p[corridor, 0] - fx).min()) if corridor.any() else math.inf
+            dx = np.maximum(0.0, np.maximum(fx - p[:, 0], p[:, 0] - (fx + stop_len_m)))
+            dy = np.maximum(0.0, ay - hw)
+            deep = (ay <= hw - self.lateral_tol_m) & (p[:, 0] >= fx - 0.0) & \
+                (p[:, 0] <= fx + stop_len_m - self.zone_tol_m)
+            out.append({"k": k, "id": o.id, "cls": o.cls, "ahead": ahead, "pts": p,
+                        "d_zone": float(np.hypot(dx, dy).min()),
+                        "in_stop": ahead <= stop_len_m + self.zone_tol_m,
+                        "in_slow": stop_len_m + self.zone_tol_m < ahead
+                        <= stop_len_m + z.slow_extra_m + self.zone_tol_m,
+                        "deep": bool(deep.any())})
+        return out
+
+    def _held(self, cells: np.ndarray, pts: np.ndarray) -> bool:
+        """Do the box's occupied cells lie on this footprint (within hold_m)?"""
+        if not len(cells):
+            return False
+        lo, hi = pts.min(0) - self.hold_m, pts.max(0) + self.hold_m
+        c = cells[(cells[:, 0] >= lo[0]) & (cells[:, 0] <= hi[0]) &
+                  (cells[:, 1] >= lo[1]) & (cells[:, 1] <= hi[1])]
+        if not len(c):
+            return False
+        d2 = ((c[:, None, :] - pts[None, :, :]) ** 2).sum(-1)
+        return bool(d2.min() <= self.hold_m ** 2)
+
+    def _pipelines_in_stop(self, res, stop_len: float) -> list[str]:
+        z = self.zones
+        names = []
+        for n, det in res.detections.items():
+            p = det.points_xy
+            if len(p):
+                a = p[:, 0] - z.front_x_m
+                if np.any((a >= 0) & (a <= stop_len) & (np.abs(p[:, 1]) <= z.half_width_m)):
+                    names.append(n)
+        return names
+
+    # ---- per cycle ---------------------------------------------------------------------------
+    def on_cycle(self, res) -> None:
+        from hal.types import GateState
+        v = self.vehicle
+        out = res.output
+        state = out.state
+        t_s = res.index / self.rate
+        stop_len = res.verdict.stop_len_m if res.verdict is not None else self.zones.min_stop_m
+        truth = self.truth(stop_len)
+        cells = np.asarray(res.cells_xy, np.float64).reshape(-1, 2)
+        x, y, yaw = v.pose()
+        is_stop = state is GateState.STOP
+        obstacle_stop = is_stop and "stop zone" in out.reason
+        in_stop = [o for o in truth if o["in_stop"]]
+        near = [o for o in truth if o["d_zone"] <= self.near_m]
+        # detection streaks of the in-path obstacles ahead
+        for o in truth:
+            k = o["k"]
+            if math.isfinite(o["ahead"]) and o["ahead"] >= -0.5 and self._held(cells, o["pts"]):
+                self._streak.setdefault(k, o["ahead"])
+            else:
+                self._streak.pop(k, None)
+        place = "near an obstacle" if near else ("headland" if self.headland() else "lane")
+        # STOP episodes
+        if is_stop and self._prev_state not in (None, GateState.STOP):
+            fault = not obstacle_stop and not out.reason.startswith("holding")
+            nearest = min(in_stop, key=lambda o: o["ahead"]) if in_stop else None
+            kind = "fault" if fault and res.faults else ("true" if nearest else "false")
+            beyond = [o for o in truth if o["in_slow"]]
+            pipes = self._pipelines_in_stop(res, stop_len)
+            cause = cause_of(out.reason)
+            if kind == "false":
+                cause = ("early: real obstacle just beyond the stop zone" if beyond else
+                         "phantom: nothing real in the stop or slow zone") + \
+                    (f" [{'+'.join(pipes)}]" if pipes else "")
+            ev = {"t_s": round(t_s, 1), "event": "stop", "kind": kind, "x_m": round(x, 2),
+                  "y_m": round(y, 2), "speed_mps": round(v.speed, 2),
+                  "stop_zone_m": round(stop_len, 2), "reason": out.reason, "cause": cause,
+                  "place": place, "pipelines": pipes,
+                  "obstacle": f"{nearest['id']}/{nearest['cls']}" if nearest else "",
+                  "real_nearest_m": None if nearest is None else round(nearest["ahead"], 2),
+                  "duration_s": None}
+            self.counts[kind] += 1
+            self.events.append(ev)
+            self._episode = ev
+            if kind == "true" and nearest["k"] not in self._detected:
+                self._detected.add(nearest["k"])
+                start = self._streak.get(nearest["k"])
+                self.detections.append({
+                    "obstacle": nearest["id"], "cls": nearest["cls"],
+                    "t_s": round(t_s, 1),
+                    "distance_m": None if start is None else round(start, 2),
+                    "ahead_at_stop_m": round(nearest["ahead"], 2),
+                    "speed_mps": round(v.speed, 2)})
+        if not is_stop and self._episode is not None:
+            self._episode["duration_s"] = round(t_s - self._episode["t_s"], 1)
+            self._episode = None
+        if obstacle_stop and not in_stop:
+            self.false_stop_s += 1.0 / self.rate
+        # missed stops: a real obstacle deep in the stop zone and no STOP
+        for o in truth:
+            k = o["k"]
+            if o["deep"] and not is_stop and k not in self._missed_open:
+                self._missed_open.add(k)
+                self.missed += 1
+                self.events.append({"t_s": round(t_s, 1), "event": "missed", "kind": o["cls"],
+                                    "x_m": round(x, 2), "y_m": round(y, 2),
+                                    "speed_mps": round(v.speed, 2),
+                                    "stop_zone_m": round(stop_len, 2), "reason": out.reason,
+                                    "cause": f"box said {state.value}", "place": place,
+                                    "obstacle": f"{o['id']}/{o['cls']}",
+                                    "real_nearest_m": round(o["ahead"], 2)})
+            elif not o["in_stop"]:
+                self._missed_open.discard(k)
+        # collisions (the sim vehicle counts them)
+        if v.collisions > self._prev_collisions:
+            for oid in v.obstacles_hit[self._prev_collisions:]:
+                o = next(ob for ob in self.field.world.obstacles if ob.id == oid)
+                self.events.append({"t_s": round(t_s, 1), "event": "collision", "kind": o.cls,
+                                    "x_m": round(x, 2), "y_m": round(y, 2),
+                                    "speed_mps": round(v.speed, 2),
+                                    "stop_zone_m": round(stop_len, 2), "reason": out.reason,
+                                    "cause": f"box said {state.value}", "place": place,
+                                    "obstacle": f"{o.id}/{o.cls}", "real_nearest_m": 0.0})
+            self._prev_collisions = v.collisions
+        self._prev_state = state
+        # the model, memory and time
+        samples = None
+        for nd in self._novelty:
+            u = nd.updater
+            if self.sync_updates and u is not None:
+                u.wait_idle(30.0)
+            if self.model_bound is None:
+                for det in res.detections.values():
+                    if "grid" in det.debug:
+                        r, c = det.debug["grid"]
+                        self.model_bound = nd.model.max_size(r * c)
+        if self._novelty:
+            samples = int(self._novelty[0].model.size)
+            self.model_samples.append(samples)
+        for s in STAGES:
+            self._stage[s].append(res.wall_ms.get(s, 0.0))
+        self._cycle_ms.append(sum(res.wall_ms.values()))
+        if res.index % self.every == 0:
+            nearest_real = min((o["ahead"] for o in truth), default=math.inf)
+            nr = min(truth, key=lambda o: o["ahead"]) if truth else None
+            self.rows.append({
+                "t_s": round(t_s, 1), "x_m": round(x, 2), "y_m": round(y, 2),
+                "yaw_deg": round(math.degrees(yaw), 1), "speed_mps": round(v.speed, 2),
+                "state": state.value, "reason": out.reason,
+                "nearest_m": None if res.verdict is None or res.verdict.nearest_m is None
+                else round(res.verdict.nearest_m, 2),
+                "stop_zone_m": round(stop_len, 2), "cells": int(len(cells)),
+                "real_nearest_m": None if not math.isfinite(nearest_real)
+                else round(nearest_real, 2),
+                "real_obstacle": "" if nr is None or not math.isfinite(nr["ahead"])
+                else f"{nr['id']}/{nr['cls']}",
+                "place": place, "collisions": v.collisions, "stops_true": self.counts["true"],
+                "stops_false": self.counts["false"], "missed_stops": self.missed,
+                "detours": v.detours, "overrides": v.overrides,
+                "model_samples": samples,
+                **{f"{s}_ms": round(res.wall_ms.get(s, 0.0), 2) for s in STAGES},
+                "render_cpu_ms": round(self._render_cpu[-1], 2) if self._render_cpu else None,
+                "pipeline_cpu_ms": round(self._pipe_cpu[-1], 2) if self._pipe_cpu else None})
+        if res.index % self.progress_every == 0:
+            self._rss.append(rss_mb())
+            if self.progress is not None:
+                self.progress(res.index, self.n_cycles)
+
+    # ---- the drive ---------------------------------------------------------------------------
+    def run(self) -> dict:
+        import cv2
+        if self.daemon is None:
+            self.build()
+        threads = cv2.getNumThreads()
+        cv2.setNumThreads(1)          # one core per drive, and the same answer anywhere
+        d = self.daemon
+        w0, c0 = time.perf_counter(), time.process_time()
+        try:
+            d.run(max_cycles=self.n_cycles)
+        finally:
+            wall_s, cpu_s = time.perf_counter() - w0, time.process_time() - c0
+            if self._episode is not None:
+                self._episode["duration_s"] = round(
+                    d.loop.cycles / self.rate - self._episode["t_s"], 1)
+            d.shutdown()
+            cv2.setNumThreads(threads)
+        return {"result": self.result(wall_s, cpu_s), "rows": self.rows,
+                "events": self.events}
+
+    def result(self, wall_s: float, cpu_s: float) -> dict:
+        from appliance.zones import stop_length
+        v = self.vehicle
+        st = v.stats()
+        cycles = self.daemon.loop.cycles
+        sim_s = cycles / self.rate
+        cal = getattr(self.field, "stereo_calibration", None)
+        by_place: dict[str, int] = {}
+        by_cause: dict[str, int] = {}
+        for e in self.events:
+            if e["event"] == "stop" and e["kind"] == "false":
+                by_place[e["place"]] = by_place.get(e["place"], 0) + 1
+                by_cause[e["cause"]] = by_cause.get(e["cause"], 0) + 1
+        cruise = self.scene.cruise_mps
+        bound = self.model_bound
+        return {
+            "kind": self.kind, "seed": self.seed, "minutes": self.minutes,
+            "stereo_scale": self.stereo_scale,
+            "image_px": None if cal is None else [cal.camera.width, cal.camera.height],
+            "pipelines": list(self.cfg.perception.pipelines),
+            "cycles": cycles, "simulated_s": round(sim_s, 1),
+            "distance_m": round(float(st["distance_m"]), 2),
+            "finished_path": bool(st.get("finished", False)),
+            "collisions": int(v.collisions),
+            "collided_with": list(v.obstacles_hit),
+            "true_stops": self.counts["true"], "false_stops": self.counts["false"],
+            "fault_stops": self.counts["fault"], "missed_stops": self.missed,
+            "false_stop_s": round(self.false_stop_s, 1),
+            "false_stops_by_place": by_place, "false_stops_by_cause": by_cause,
+            "detours": int(v.detours), "overrides": int(v.overrides),
+            "detections": self.detections,
+            "cruise_mps": cruise,
+            "stopping_distance_at_cruise_m": {
+                "box_stop_zone": round(stop_length(cruise, self.zones), 2),
+                "vehicle_braking": round(cruise * cruise / (2 * v.decel_mps2), 2)},
+            "model": {"samples_max": max(self.model_samples, default=None),
+                      "samples_last": self.model_samples[-1] if self.model_samples else None,
+                      "bound": bound, "bytes_per_sample": 40,
+                      "bytes_max": None if not self.model_samples else
+                      40 * max(self.model_samples)},
+            "timing": {
+                "wall_s": round(wall_s, 1), "process_cpu_s": round(cpu_s, 1),
+                "stage_wall_ms_p50": {s: pct(self._stage[s], 50) for s in STAGES},
+                "stage_wall_ms_p99": {s: pct(self._stage[s], 99) for s in STAGES},
+                "cycle_wall_ms_p50": pct(self._cycle_ms, 50),
+                "pipeline_cpu_ms_p50": pct(self._pipe_cpu, 50),
+                "render_cpu_ms_p50": pct(self._render_cpu, 50),
+                "rss_mb_max": None if not self._rss else round(max(self._rss), 1),
+                "rss_mb_last": None if not self._rss else round(self._rss[-1], 1),
+                "overruns": self.daemon.loop.overruns,
+            },
+        }

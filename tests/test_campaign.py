@@ -1,0 +1,232 @@
+"""fieldguard campaign: a tiny campaign of real closed-loop drives (the daemon with the laser
+pipeline on the simulated field) run once without Ray and once on a local Ray with 2 workers
+must give the same figures, drive for drive; a rerun skips finished drives; bad arguments are
+one clear error, never a traceback."""
+from __future__ import annotations
+
+import csv
+import json
+import sys
+
+import pytest
+
+from appliance.campaign import (COMPARE_EXCLUDE, Campaign, CampaignError, aggregate,
+                                parse_seeds, poisson_ci95)
+from appliance.cli import main
+
+KINDS = ["stubble-day"]        # the obstacle course: a person on the path ~13 m ahead
+SEEDS = [1, 2]
+MINUTES = 0.1                  # 60 cycles a drive: the box sees the person, the gate acts
+LASER = '[perception]\npipelines = ["laser"]\n'
+
+
+def _strip(summary: dict) -> dict:
+    return {k: v for k, v in summary.items() if k not in COMPARE_EXCLUDE}
+
+
+@pytest.fixture(scope="module")
+def local_ray():
+    """One local Ray with 2 CPUs for the module (started as the campaign starts it; the
+    campaign and eval use a Ray that is already up and leave it up)."""
+    ray = pytest.importorskip("ray")
+    import logging
+    ray.init(num_cpus=2, include_dashboard=False, logging_level=logging.WARNING,
+             log_to_driver=False, object_store_memory=200 * 2**20)
+    yield ray
+    ray.shutdown()
+
+
+@pytest.fixture(scope="module")
+def campaigns(tmp_path_factory, local_ray):
+    base = tmp_path_factory.mktemp("campaign")
+    cfg = base / "laser.toml"
+    cfg.write_text(LASER)
+    local = Campaign(KINDS, SEEDS, MINUTES, base / "local", workers=1, config_file=str(cfg),
+                     stereo_scale=0.25, progress=False).run()
+    on_ray = Campaign(KINDS, SEEDS, MINUTES, base / "ray", workers=2, config_file=str(cfg),
+                      stereo_scale=0.25, progress=False).run()
+    return base, cfg, local, on_ray
+
+
+def test_ray_with_two_workers_equals_one_worker_without_ray(campaigns):
+    base, _cfg, local, on_ray = campaigns
+    assert local["engine"] == "local" and local["workers"] == 1
+    assert on_ray["engine"] == "ray" and on_ray["workers"] == 2
+    assert _strip(on_ray) == _strip(local)
+    # the drives did something worth comparing: driven metres, a box that saw obstacles
+    assert local["drives"] == 2 and local["distance_km"] > 0.005
+    assert local["simulated_hours"] == pytest.approx(2 * MINUTES / 60, abs=1e-6)
+    # and each drive's events and per-cycle record (all but the host's ms) are the same
+    for s in SEEDS:
+        a, b = (base / w / "drives" / f"stubble-day-{s}" for w in ("local", "ray"))
+        assert json.loads((a / "events.json").read_text()) == \
+            json.loads((b / "events.json").read_text())
+        ra, rb = (list(csv.DictReader(open(d / "cycles.csv"))) for d in (a, b))
+        assert len(ra) == len(rb) == 60
+        keep = [k for k in ra[0] if not k.endswith("_ms")]
+        assert [[r[k] for k in keep] for r in ra] == [[r[k] for k in keep] for r in rb]
+        assert {r["state"] for r in ra} >= {"STOP", "CLEAR"}
+
+
+def test_summary_keys_and_report(campaigns):
+    base, _cfg, local, _ = campaigns
+    for k in ("engine", "workers", "drives", "simulated_hours", "distance_km", "collisions",
+              "false_stops", "false_stops_per_hour", "false_stops_per_hour_ci95",
+              "true_stops", "missed_stops", "detection_distance_m", "per_scene"):
+        assert k in local, k
+    assert set(local["per_scene"]) == set(KINDS)
+    one = local["per_scene"]["stubble-day"]
+    for k in ("simulated_hours", "false_stops_per_hour_ci95", "detection_distance_m"):
+        assert one[k] == local[k]
+    lo, hi = local["false_stops_per_hour_ci95"]
+    assert lo <= local["false_stops_per_hour"] <= hi
+    assert json.loads((base / "local" / "summary.json").read_text()) == local
+    report = (base / "local" / "report.md").read_text()
+    for png in ("detection.png", "false_stops.png", "memory.png", "stages.png",
+                "route-stubble-day-1.png"):
+        assert f"plots/{png}" in report
+        assert (base / "local" / "plots" / png).stat().st_size > 1000
+    t = local["timing"]
+    assert t["simulated_hours_per_cpu_hour"] > 0 and t["drives_run"] == 2
+
+
+def test_rerun_skips_finished_drives_and_redrives_a_missing_one(campaigns):
+    base, cfg, local, _ = campaigns
+    out = base / "local"
+    res = out / "drives" / "stubble-day-1" / "result.json"
+    before = res.stat().st_mtime_ns
+    again = Campaign(KINDS, SEEDS, MINUTES, out, workers=1, config_file=str(cfg),
+                     stereo_scale=0.25, progress=False).run()
+    assert again["timing"]["drives_run"] == 0 and again["timing"]["drives_skipped"] == 2
+    assert _strip(again) == _strip(local)
+    assert res.stat().st_mtime_ns == before
+    # a drive that did not finish (no result.json: it is written last) is driven again
+    (out / "drives" / "stubble-day-2" / "result.json").unlink()
+    third = Campaign(KINDS, SEEDS, MINUTES, out, workers=1, config_file=str(cfg),
+                     stereo_scale=0.25, progress=False).run()
+    assert third["timing"]["drives_run"] == 1
+    assert _strip(third) == _strip(local)
+    assert not list(out.rglob(".*tmp*"))          # no temporary files left
+
+
+def test_rerun_with_other_settings_is_refused(campaigns):
+    base, cfg, _local, _ = campaigns
+    with pytest.raises(CampaignError, match="other settings"):
+        Campaign(KINDS, SEEDS, 2 * MINUTES, base / "local", workers=1, config_file=str(cfg),
+                 stereo_scale=0.25, progress=False).run()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--scene", "stubble-nowhere", "--seeds", "1-2"], "unknown scene kind 'stubble-nowhere'"),
+    (["--scene", "stubble-day", "--seeds", "5-3"], "--seeds: bad range '5-3'"),
+    (["--scene", "stubble-day", "--seeds", "x-y"], "not a seed or a range"),
+    (["--scene", "stubble-day", "--seeds", "1-2", "--workers", "0"], "--workers 0"),
+    (["--scene", "stubble-day", "--seeds", "1-2", "--stereo-scale", "3"], "--stereo-scale 3"),
+    (["--scene", "stubble-day", "--seeds", "1-2", "--config", "/nonexistent/x.toml"],
+     "--config /nonexistent/x.toml: cannot read it"),
+])
+def test_bad_arguments_are_one_clear_error(tmp_path, capsys, args, message):
+    rc = main(["campaign", *args, "--minutes", "1", "--out", str(tmp_path / "c")])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert err.startswith("fieldguard: error: ") and message in err
+    assert "Traceback" not in err
+
+
+def test_unwritable_out_dir_and_a_file_as_out(tmp_path, capsys):
+    f = tmp_path / "file"
+    f.write_text("x")
+    for out, message in ((f, "exists and is not a directory"),
+                         (f / "sub", "cannot write there")):
+        rc = main(["campaign", "--scene", "stubble-day", "--seeds", "1", "--minutes", "1",
+                   "--out", str(out)])
+        err = capsys.readouterr().err
+        assert rc == 2 and message in err and "Traceback" not in err
+
+
+def test_bad_config_file_names_the_problem(tmp_path, capsys):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[perception\n")
+    rc = main(["campaign", "--scene", "stubble-day", "--seeds", "1", "--minutes", "1",
+               "--out", str(tmp_path / "c"), "--config", str(bad)])
+    err = capsys.readouterr().err
+    assert rc == 2 and "not valid TOML" in err
+    bad.write_text('[perception]\npipelines = ["no-such-pipeline"]\n')
+    rc = main(["campaign", "--scene", "stubble-day", "--seeds", "1", "--minutes", "1",
+               "--out", str(tmp_path / "c"), "--config", str(bad)])
+    err = capsys.readouterr().err
+    assert rc == 2 and "no-such-pipeline" in err and "Traceback" not in err
+
+
+def test_workers_without_ray_says_how_to_install_it(tmp_path, capsys, monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)         # import ray -> ImportError
+    cfg = tmp_path / "laser.toml"
+    cfg.write_text(LASER)
+    rc = main(["campaign", "--scene", "stubble-day", "--seeds", "1", "--minutes", "0.01",
+               "--out", str(tmp_path / "c"), "--workers", "2", "--config", str(cfg)])
+    err = capsys.readouterr().err
+    assert rc == 2 and "needs Ray" in err and "pip install 'fieldguard[campaign]'" in err
+    assert "--workers 1" in err and "Traceback" not in err
+
+
+def test_seed_ranges():
+    assert parse_seeds("1000-1003") == [1000, 1001, 1002, 1003]
+    assert parse_seeds("7") == [7]
+    assert parse_seeds("0-1,10") == [0, 1, 10]
+    with pytest.raises(CampaignError, match="twice"):
+        parse_seeds("1-3,2")
+    with pytest.raises(CampaignError, match="not a seed"):
+        parse_seeds("-1")
+
+
+def test_poisson_interval_is_the_exact_one():
+    # Garwood intervals: 0 events -> [0, 3.689], 1 -> [0.0253, 5.572], 10 -> [4.795, 18.39]
+    assert poisson_ci95(0, 1.0) == [0.0, 3.689]
+    assert poisson_ci95(1, 1.0) == [0.025, 5.572]
+    assert poisson_ci95(10, 2.0) == [round(4.7954 / 2, 3), round(18.3904 / 2, 3)]
+    assert poisson_ci95(3, 0.0) == [None, None]
+
+
+def _result(kind, seed, sim_s, false, dets=()):
+    return {"kind": kind, "seed": seed, "simulated_s": sim_s, "distance_m": 100.0,
+            "collisions": 0, "false_stops": false, "true_stops": len(dets), "missed_stops": 0,
+            "fault_stops": 0, "detours": 0, "overrides": false, "false_stop_s": 10.0 * false,
+            "detections": [{"cls": c, "distance_m": d} for c, d in dets],
+            "false_stops_by_place": {"lane": false}, "false_stops_by_cause": {"x": false},
+            "model": {"samples_max": None, "bound": None}}
+
+
+def test_aggregate_counts_rates_and_detection_distances():
+    rs = [_result("a", 1, 1800.0, 2, [("person", 6.0), ("person", 9.0)]),
+          _result("a", 2, 1800.0, 1, [("person", None), ("drum", 4.0), ("person", 7.5)])]
+    s = aggregate(rs)
+    assert s["simulated_hours"] == 1.0 and s["false_stops"] == 3
+    assert s["false_stops_per_hour"] == 3.0
+    assert s["false_stops_per_hour_ci95"] == poisson_ci95(3, 1.0)
+    assert s["detection_distance_m"]["person"] == {"min": 6.0, "median": 7.5, "stops": 4,
+                                                   "stopped_without_hold": 1}
+    assert s["detection_distance_m"]["drum"]["median"] == 4.0
+    assert s["false_stops_by_place"] == {"lane": 3}
+
+
+def test_eval_many_runs_on_ray_is_one_table_equal_to_one_by_one(tmp_path, capsys, local_ray):
+    from appliance.campaign_eval import eval_many
+    from drivers.sim.record import write_sim_run
+    runs = [str(write_sim_run("stubble-day", 4, tmp_path / f"run{s}", seed=s,
+                              sensors=("laser",))) for s in (1, 2)]
+    one = eval_many(runs, "laser", workers=1)
+    par = eval_many(runs, "laser", workers=2)
+    strip = lambda r: {k: v for k, v in r.items() if not k.startswith("ms_")  # noqa: E731
+                       and k not in ("ms_per_frame", "timed_frames")}
+    assert [strip(r) for _, r, _ in par] == [strip(r) for _, r, _ in one]
+    assert all(e is None for _, _, e in par)
+    rc = main(["eval", *runs, "--pipeline", "laser", "--workers", "2"])
+    out = capsys.readouterr().out
+    assert rc == 0
+    lines = out.strip().splitlines()
+    assert lines[0].split()[:3] == ["run", "pipeline", "frames"]
+    assert [ln.split()[0] for ln in lines[2:4]] == ["stubble-day-1", "stubble-day-2"]
+    assert lines[-1].split()[:2] == ["all", "8"]
+    # one bad folder: named, the others still scored, exit 2
+    rc = main(["eval", runs[0], str(tmp_path / "nowhere"), "--workers", "1"])
+    assert rc == 2 and "no such run folder" in capsys.readouterr().err
