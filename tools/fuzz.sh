@@ -54,7 +54,7 @@ else
 fi
 # keep only the inputs that add coverage to the committed corpus
 nice -n "${FUZZ_NICE:-15}" "$PY" -m tests.fuzz.run "$target" -merge=1 -timeout="${FUZZ_TIMEOUT_S:-20}" \
-  "$corpus" "$work" >"$work/merge.log" 2>&1 || true
+  -artifact_prefix="$work/merge-" "$corpus" "$work" >"$work/merge.log" 2>&1 || true
 printf '%s\t%s\t%s\t%s\t%s\t%s\n' "$(date -u +%FT%TZ)" "$target" "$elapsed" "${runs:-?}" \
   "$result" "$commit" >>tests/fuzz/fuzz-log.tsv
 echo "fuzz $target: ${elapsed} s, ${runs:-?} inputs, coverage ${cov:-?}, corpus $(ls "$corpus" | wc -l) files, $result"
