@@ -415,6 +415,9 @@ def load_config(path: str | Path) -> Config:
         raise ConfigError("file not found", file=str(p))
     except OSError as exc:
         raise ConfigError(f"cannot read: {exc.strerror}", file=str(p))
+    except UnicodeDecodeError as exc:     # found by tests/fuzz/fuzz_config.py
+        raise ConfigError(f"not UTF-8 text (byte {exc.start}): TOML files are UTF-8",
+                          file=str(p)) from None
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
