@@ -15,15 +15,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
+from appliance.perception import pipeline_options  # noqa: F401 (the CLI reads options here)
+from appliance.perception.laser import LaserPipelineConfig
+from appliance.schema import _f
 from hal.errors import ConfigError
-
-
-def _f(default, *, lo=None, hi=None, choices=None, doc=""):
-    """A config field with its validation rules."""
-    meta = {"lo": lo, "hi": hi, "choices": choices, "doc": doc}
-    if isinstance(default, (list, dict)):
-        return field(default_factory=lambda: default, metadata=meta)
-    return field(default=default, metadata=meta)
 
 
 @dataclass(frozen=True)
@@ -124,14 +119,6 @@ class TrackingConfig:
                                 doc="slower than this: not predicted (noise on a still object)")
     max_tracks: int = _f(300, lo=1, hi=100000)
     weights: SourceWeights = field(default_factory=SourceWeights)
-
-
-@dataclass(frozen=True)
-class LaserPipelineConfig:
-    min_range_m: float = _f(0.3, lo=0.0)
-    max_range_m: float = _f(30.0, lo=0.1)
-    use_attitude: bool = _f(False, doc="project hits with the vehicle's roll/pitch (not in the paper)")
-    min_height_m: float = _f(-100.0, doc="with use_attitude: drop hits lower than this")
 
 
 @dataclass(frozen=True)
@@ -429,12 +416,3 @@ def default_config() -> Config:
     return Config()
 
 
-def pipeline_options(cfg: Config, name: str):
-    """The options dataclass of pipeline ``name`` (its defaults when the file has no table)."""
-    if name == "laser":
-        return cfg.perception.laser
-    if name in cfg.perception.extra:
-        return cfg.perception.extra[name]
-    from appliance.perception import pipeline_config_class
-    cls = pipeline_config_class(name)
-    return cls() if cls is not None else None

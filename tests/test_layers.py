@@ -39,6 +39,20 @@ def test_perception_does_no_io():
             assert f" {call}" not in src and f"={call}" not in src, (f, call)
 
 
+def test_perception_never_imports_the_appliance_config():
+    """config imports the pipeline registry (to validate [perception.NAME] tables); the
+    pipelines take their options objects and the field helper from appliance.schema, so the two
+    never import each other."""
+    bad = [(str(f.relative_to(ROOT)), m) for f, top, m in imports("appliance/perception")
+           if m == "appliance.config" or m.startswith("appliance.config.")]
+    assert not bad, bad
+
+
+def test_tools_never_import_the_tests():
+    bad = [(str(f.relative_to(ROOT)), m) for f, top, m in imports("tools") if top == "tests"]
+    assert not bad, bad
+
+
 def test_hal_depends_only_on_stdlib_and_numpy():
     import sys
     std = set(sys.stdlib_module_names)

@@ -47,17 +47,30 @@ def pipeline_config_class(name: str):
     return getattr(pipeline_class(name), "config_class", None)
 
 
+def pipeline_options(cfg, name: str):
+    """The options dataclass of pipeline ``name`` in an appliance config (``cfg.perception``:
+    ``laser`` and the ``extra`` tables); its defaults when ``cfg`` is None or has no table.
+    Perception never imports the appliance config (config imports this registry)."""
+    per = getattr(cfg, "perception", None)
+    if per is not None:
+        if name == "laser":
+            return per.laser
+        if name in per.extra:
+            return per.extra[name]
+    cls = pipeline_config_class(name)
+    return cls() if cls is not None else None
+
+
 def make_pipeline(name: str, config=None) -> Pipeline:
-    """Build pipeline ``name`` from the appliance config (defaults when None)."""
-    from appliance.config import default_config, pipeline_options
-    cfg = config if config is not None else default_config()
+    """Build pipeline ``name`` from the appliance config (its defaults when None; ``fused``
+    over the config's pipelines, the laser alone without one)."""
     if name == "fused":
         from .fused import FusedPipeline
-        return FusedPipeline([make_pipeline(n, cfg) for n in cfg.perception.pipelines
-                              if n != "fused"])
+        names = config.perception.pipelines if config is not None else ("laser",)
+        return FusedPipeline([make_pipeline(n, config) for n in names if n != "fused"])
     cls = pipeline_class(name)
-    return cls(pipeline_options(cfg, name))
+    return cls(pipeline_options(config, name))
 
 
 __all__ = ["Candidate", "Detections", "Pipeline", "SensorInputs", "make_pipeline", "known_pipelines",
-           "register_pipeline", "pipeline_config_class"]
+           "register_pipeline", "pipeline_config_class", "pipeline_options"]

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from appliance.config import _f
+from appliance.schema import _f
 from hal.errors import FieldguardError
 
 from .cue_features import cell_features, scale_to_width

@@ -10,10 +10,20 @@ from __future__ import annotations
 
 import numpy as np
 
-from appliance.config import LaserPipelineConfig
+from dataclasses import dataclass
+
+from appliance.schema import _f
 from hal.types import rotation_rpy
 
 from .base import Detections, Pipeline, SensorInputs
+
+
+@dataclass(frozen=True)
+class LaserPipelineConfig:
+    min_range_m: float = _f(0.3, lo=0.0)
+    max_range_m: float = _f(30.0, lo=0.1)
+    use_attitude: bool = _f(False, doc="project hits with the vehicle's roll/pitch (not in the paper)")
+    min_height_m: float = _f(-100.0, doc="with use_attitude: drop hits lower than this")
 
 
 class LaserPipeline(Pipeline):

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from appliance.config import _f
+from appliance.schema import _f
 
 from .base import Detections, Pipeline, SensorInputs
 from .cue import CueOptions, LearnedCue

@@ -26,7 +26,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from appliance.config import _f
+from appliance.schema import _f
 
 from .base import Detections, Pipeline, SensorInputs
 
@@ -177,7 +177,7 @@ def check_daemon_matchers(cfg) -> None:
     triangulation on crops with too few support points; seen on 16-32-row crops, and crops are
     now at least 64 rows, but that is not a proof). It is for offline comparison with
     ``fieldguard eval``; a safety box must not run code that can take the loop down."""
-    from appliance.config import pipeline_options
+    from appliance.perception import pipeline_options
     from hal.errors import ConfigError
     for name in cfg.perception.pipelines:
         if name != "fused" and getattr(pipeline_options(cfg, name), "matcher", None) == "elas":
