@@ -53,29 +53,54 @@ def _load_run_config(a):
     return parse_config(data, a.config or "<command line>")
 
 
+# scenes whose sensors the default (laser) pipeline cannot use: `run --sim SCENE` without a
+# --config runs the pipeline the scene is built for
+SCENE_PIPELINES = {"greenhouse": ("rgbd",)}
+
+
+def all_sensors_simulated(cfg) -> bool:
+    """True when every sensor device of the config is simulated (links may be real): such a
+    config can only run the simulated field, so it runs as ``--sim`` does (lock-step clock,
+    rendering outside the loop's time), not against the wall clock."""
+    sensors = [d for d in cfg.devices if d.kind != "link"]
+    return bool(sensors) and all(d.type == "sim" for d in sensors)
+
+
 def cmd_run(a) -> int:
+    import dataclasses
+
+    from appliance.config import check_scene
     from appliance.daemon import Daemon, replay_config, sim_config
     cfg = _load_run_config(a)
     if a.sim is not None and a.replay:
         raise FieldguardError("give --sim or --replay, not both")
+    if a.sim:
+        check_scene(a.sim)
+        if not a.config and a.sim in SCENE_PIPELINES:
+            cfg = dataclasses.replace(cfg, perception=dataclasses.replace(
+                cfg.perception, pipelines=SCENE_PIPELINES[a.sim], optional=()))
     if a.sim is not None:
         cfg, mode = sim_config(cfg, a.sim or None), "sim"
     elif a.replay:
         cfg, mode = replay_config(cfg, a.replay), "replay"
+    elif all_sensors_simulated(cfg):
+        mode = "sim"
+        log.info("every sensor in %s is simulated: running the simulated field (scene %s) "
+                 "as `run --sim` does", cfg.source, cfg.sim.scene)
     else:
         mode = "hardware"
     pace = 0.0 if a.fast else None
     d = Daemon(cfg, mode=mode, replay_path=a.replay, pace=pace, status_socket=a.socket)
     d.install_signal_handlers()
-    d.start()
     printer = None
-    if a.print_every and a.print_every > 0:
-        printer = _StatusPrinter(d, a.print_every)
-        d.loop.on_cycle.append(printer)
-    max_cycles = None
-    if a.duration:
-        max_cycles = int(round(a.duration * cfg.loop.rate_hz))
     try:
+        d.start()
+        if a.print_every and a.print_every > 0:
+            printer = _StatusPrinter(d, a.print_every)
+            d.loop.on_cycle.append(printer)
+        max_cycles = None
+        if a.duration:
+            max_cycles = int(round(a.duration * cfg.loop.rate_hz))
         d.run(max_cycles=max_cycles)
     finally:
         d.shutdown()
@@ -121,7 +146,7 @@ def cmd_status(a) -> int:
     try:
         doc = read_status(a.socket)
     except ConnectionError as exc:
-        print(f"fieldguard status: {exc}", file=sys.stderr)
+        print(f"fieldguard: error: {exc}", file=sys.stderr)
         return 2
     healthy = doc.get("state") != "STOP" or not doc.get("faults")
     if a.json:
@@ -152,11 +177,6 @@ def format_status(doc: dict) -> str:
         lines.append(f"picture {o['occupied_cells']} occupied cells, stop zone {o['stop_zone_m']} m,"
                      f" in stop {o['in_stop_zone']}, in slow {o['in_slow_zone']}, "
                      f"nearest {o['nearest_m']} m")
-    for t in doc.get("tracks", []):
-        lines.append(f"  track {t['id']:<5} {t['distance_m']:5.1f} m  x {t['x_m']:6.2f} y "
-                     f"{t['y_m']:6.2f}  {t['length_m']:.1f}x{t['width_m']:.1f} m  v "
-                     f"{t['vx_mps']:+.1f},{t['vy_mps']:+.1f} m/s  p {t['confidence']:.2f}  "
-                     f"{'+'.join(t['sources'])}{'  (held unseen)' if t.get('coasting') else ''}")
     for n, peers in doc.get("links", {}).items():
         for p in peers:
             lines.append(f"link    {n}: " + ", ".join(f"{k}={v}" for k, v in p.items()))
@@ -169,18 +189,39 @@ def format_status(doc: dict) -> str:
 
 
 def cmd_sim(a) -> int:
+    from appliance.config import check_scene
     from appliance.progress import Progress
+    from drivers.sim.field import SENSORS
     from drivers.sim.record import write_sim_run
-    sensors = tuple(a.sensors.split(",")) if a.sensors else None
+    check_scene(a.scene)
+    if a.frames < 1:
+        raise FieldguardError(f"--frames must be at least 1, got {a.frames}")
+    if not 0.1 <= a.stereo_scale <= 1.0:
+        raise FieldguardError(f"--stereo-scale must be in [0.1, 1.0], got {a.stereo_scale}")
+    sensors = tuple(x.strip() for x in a.sensors.split(",")) if a.sensors else None
+    bad = [x for x in sensors or () if x not in SENSORS]
+    if bad or sensors == ():
+        raise FieldguardError(f"--sensors: unknown sensor(s) {', '.join(map(repr, bad))}; give "
+                              f"a comma list of {', '.join(SENSORS)}")
     kw = {} if sensors is None else {"sensors": sensors}
-    out = write_sim_run(a.scene, a.frames, a.out, seed=a.seed, stereo_scale=a.stereo_scale,
-                        progress=Progress(f"sim {a.scene}", a.frames), overwrite=a.overwrite,
-                        **kw)
+    try:
+        out = write_sim_run(a.scene, a.frames, a.out, seed=a.seed,
+                            stereo_scale=a.stereo_scale,
+                            progress=Progress(f"sim {a.scene}", a.frames),
+                            overwrite=a.overwrite, **kw)
+    except OSError as exc:
+        raise FieldguardError(f"cannot write the run folder {a.out}: "
+                              f"{exc.strerror or exc}; give --out a folder you can write "
+                              f"to") from None
     print(f"wrote {a.frames} frames to {out} (preview: {out}/preview.png)")
     return 0
 
 
 def cmd_eval(a) -> int:
+    if len(a.run) > 1 or a.workers is not None or a.address:
+        from appliance.campaign_eval import cmd_eval_many    # many runs, on Ray
+        return cmd_eval_many(a)
+    a.run = a.run[0]
     from appliance.evaluation import evaluate_run, format_table
     from appliance.progress import Progress
     cfg = _load(a.config) if a.config else None
@@ -248,11 +289,29 @@ def _check_cue_models(cfg) -> list[str]:
 
 
 def cmd_config_check(a) -> int:
+    """Every check `run --config FILE` makes before it starts (and with --sim, every check of
+    `run --sim --config FILE`): the file, its scenes, connection strings and DBC, devices
+    present, pipelines and their models."""
     from appliance.config import load_config
+    from hal.errors import ConfigError
     cfg = load_config(a.file)
+    if a.sim:
+        from appliance.daemon import sim_config
+        cfg = sim_config(cfg)
+    elif not cfg.devices:
+        # what the daemon says too: an empty file is the built-in defaults, which have no
+        # devices, so only --sim or --replay can run it
+        raise ConfigError("no [devices] configured, so `fieldguard run --config` (and the "
+                          "service) would refuse it. A file without [devices] (an empty file "
+                          "is the built-in defaults) runs only with --sim or --replay RUN: check "
+                          "it with `fieldguard config check --sim FILE`, or add [devices] tables "
+                          "(deploy/fieldguard.toml has one for each kind)", file=a.file)
     from appliance.perception.stereo import check_daemon_matchers
     check_daemon_matchers(cfg)            # a config for the box: never LIBELAS
     notes = _check_cue_models(cfg)
+    if not a.sim and all_sensors_simulated(cfg):
+        notes.append(f"note: every sensor is simulated: `run --config` runs the simulated field "
+                     f"(scene {cfg.sim.scene}) as `run --sim` does")
     print(f"{a.file}: OK ({len(cfg.devices)} devices: "
           f"{', '.join(f'{d.name}={d.type}' for d in cfg.devices) or 'none'}; pipelines: "
           f"{', '.join(cfg.perception.pipelines)})")
@@ -265,7 +324,8 @@ def cmd_config_check(a) -> int:
 # Commands that live in their own modules: each module has ``register(subparsers)`` that adds
 # its sub-parser(s) with ``set_defaults(func=...)``. Add a line here to plug a command in.
 COMMAND_MODULES: list[str] = ["appliance.cli_ops", "appliance.cli_rgbd", "appliance.cli_novelty",
-                              "appliance.cli_cue", "appliance.mcap_export"]
+                              "appliance.cli_cue", "appliance.campaign",
+                              "appliance.mcap_export"]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -316,7 +376,11 @@ def build_parser() -> argparse.ArgumentParser:
     e = sub.add_parser("eval", help="score a pipeline on a run folder",
                        description="Score as docs/run-format.md defines; prints a table, or "
                                    "JSON with --json.")
-    e.add_argument("run")
+    e.add_argument("run", nargs="+", help="run folder(s); several are scored in parallel on "
+                   "Ray (--workers) and printed as one table")
+    e.add_argument("--workers", type=int, help="runs scored at once (default: all cores; 1: "
+                   "one after the other, without Ray)")
+    e.add_argument("--address", help="score on this Ray cluster instead of a local Ray")
     e.add_argument("--pipeline", default=None,
                    help="laser, stereo, stereo-novelty, rgbd, fused (default: the box's default "
                         "perception for the sensors the run has, or the --config's pipelines)")
@@ -331,12 +395,47 @@ def build_parser() -> argparse.ArgumentParser:
     csub = c.add_subparsers(dest="config_cmd", required=True, metavar="SUBCOMMAND")
     cc = csub.add_parser("check", help="validate a config file without starting anything")
     cc.add_argument("file")
+    cc.add_argument("--sim", action="store_true",
+                    help="check it as `run --sim --config FILE` uses it (devices optional)")
     cc.set_defaults(func=cmd_config_check)
 
     import importlib
     for mod in COMMAND_MODULES:
         importlib.import_module(mod).register(sub)
     return p
+
+
+def _error_log_path():
+    from pathlib import Path
+    base = os.environ.get("STATE_DIRECTORY", "").split(":")[0]
+    if not base:
+        import tempfile
+        base = str(Path(tempfile.gettempdir()) / f"fieldguard-{os.getuid()}")
+    return Path(base) / "internal-errors.log"
+
+
+def _report_internal_error(args, exc: BaseException) -> None:
+    """An exception nobody meant: one line for the user, the traceback in a log file (and in
+    the journal/stderr log only with -v)."""
+    import traceback
+    text = "".join(traceback.format_exception(exc))
+    where = "the log"
+    try:
+        path = _error_log_path()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(path, "a", encoding="utf-8") as f:
+            f.write(f"--- {time.strftime('%Y-%m-%d %H:%M:%S')} fieldguard "
+                    f"{' '.join(sys.argv[1:]) or getattr(args, 'cmd', '')}\n{text}")
+        where = str(path)
+    except OSError:
+        pass
+    if getattr(args, "verbose", False):
+        log.error("internal error:\n%s", text)
+    else:
+        log.debug("internal error:\n%s", text)
+    msg = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+    print(f"fieldguard: error: internal error: {type(exc).__name__}"
+          f"{': ' + msg if msg else ''} (please report; details in {where})", file=sys.stderr)
 
 
 def main(argv=None) -> int:
@@ -349,6 +448,11 @@ def main(argv=None) -> int:
         return 2
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:          # `fieldguard status | head`: not an error of ours
+        return 0
+    except Exception as exc:         # never a traceback for the user
+        _report_internal_error(args, exc)
+        return 2
 
 
 if __name__ == "__main__":

@@ -38,18 +38,27 @@ def cmd_watch(a) -> int:
 
 def cmd_snapshot(a) -> int:
     from appliance.status import request
+    out = Path(a.output)
+    if out.is_dir():                    # -o DIR: a new file in it, named by the time
+        out = out / time.strftime("fieldguard-snapshot-%Y%m%d-%H%M%S.png")
     try:
         data = request(a.socket, "snapshot", timeout_s=15.0)
     except ConnectionError as exc:
-        print(f"fieldguard snapshot: {exc}", file=sys.stderr)
+        print(f"fieldguard: error: {exc}", file=sys.stderr)
         return 2
     if not data.startswith(b"\x89PNG"):
-        msg = json.loads(data).get("error", data[:200])
-        print(f"fieldguard snapshot: the daemon said: {msg}", file=sys.stderr)
+        try:
+            msg = json.loads(data).get("error", data[:200])
+        except ValueError:
+            msg = data[:200]
+        print(f"fieldguard: error: the daemon gave no picture: {msg}", file=sys.stderr)
         return 1
-    out = Path(a.output)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_bytes(data)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_bytes(data)
+    except OSError as exc:
+        raise FieldguardError(f"cannot write {out}: {exc.strerror or exc}; give -o a file or "
+                              f"folder you can write to") from None
     print(f"wrote {out} ({len(data) // 1024} KiB)")
     return 0
 
@@ -105,10 +114,10 @@ def cmd_record(a) -> int:
     try:
         doc = request_json(a.socket, f"record {a.seconds} {out}")
     except ConnectionError as exc:
-        print(f"fieldguard record: {exc}", file=sys.stderr)
+        print(f"fieldguard: error: {exc}", file=sys.stderr)
         return 2
     except RuntimeError as exc:
-        print(f"fieldguard record: the daemon refused: {exc}", file=sys.stderr)
+        print(f"fieldguard: error: the daemon refused to record: {exc}", file=sys.stderr)
         return 1
     print(f"recording {doc['seconds']} s into {doc['recording']} (the daemon writes it; "
           f"`fieldguard replay {out}` plays it back)")
@@ -149,7 +158,8 @@ def register(sub) -> None:
     s = sub.add_parser("snapshot", help="a picture of what the box sees now",
                        description="Camera image with masks and occupied cells, the depth or "
                                    "slope view, and the grid with the zones, in one PNG.")
-    s.add_argument("-o", "--output", required=True, help="PNG file to write")
+    s.add_argument("-o", "--output", required=True,
+                   help="PNG file to write (a folder: a new file in it, named by the time)")
     s.add_argument("--socket")
     s.set_defaults(func=cmd_snapshot)
 

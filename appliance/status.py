@@ -18,14 +18,68 @@ import tempfile
 import threading
 from pathlib import Path
 
+from hal.errors import FieldguardError
+
 log = logging.getLogger("fieldguard.status")
+
+# where the installed box keeps its config, and where systemd puts the daemon's socket
+# (RuntimeDirectory=fieldguard in deploy/fieldguard.service)
+SYSTEM_CONFIG = "/etc/fieldguard/fieldguard.toml"
+SYSTEM_SOCKET = "/run/fieldguard/status.sock"
+
+
+class StatusSocketInUse(FieldguardError):
+    """Another daemon answers on the status socket this one was to listen on."""
 
 
 def default_socket_path() -> str:
+    """Where a daemon listens when neither --socket nor ``[status] socket`` says."""
     base = os.environ.get("RUNTIME_DIRECTORY") or os.environ.get("FIELDGUARD_RUN_DIR")
     if base:
         return str(Path(base.split(":")[0]) / "status.sock")
     return str(Path(tempfile.gettempdir()) / f"fieldguard-{os.getuid()}" / "status.sock")
+
+
+def _system_config_socket() -> str | None:
+    """``[status] socket`` of the installed box's config, if it sets one."""
+    try:
+        import tomllib
+        with open(SYSTEM_CONFIG, "rb") as f:
+            sock = tomllib.load(f).get("status", {}).get("socket", "")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return sock if isinstance(sock, str) and sock else None
+
+
+def socket_candidates() -> list[str]:
+    """Where a client looks for the daemon, in this order: $RUNTIME_DIRECTORY (or
+    $FIELDGUARD_RUN_DIR), ``[status] socket`` of /etc/fieldguard/fieldguard.toml, systemd's
+    /run/fieldguard/status.sock, and /tmp/fieldguard-UID/status.sock (a daemon run by hand)."""
+    out = []
+    base = os.environ.get("RUNTIME_DIRECTORY") or os.environ.get("FIELDGUARD_RUN_DIR")
+    if base:
+        out.append(str(Path(base.split(":")[0]) / "status.sock"))
+    sock = _system_config_socket()
+    if sock:
+        out.append(sock)
+    out.append(SYSTEM_SOCKET)
+    out.append(str(Path(tempfile.gettempdir()) / f"fieldguard-{os.getuid()}" / "status.sock"))
+    return list(dict.fromkeys(out))
+
+
+def find_socket(path: str | None = None) -> tuple[str, list[str]]:
+    """(the socket to ask, the places looked). An explicit path wins; else the first candidate
+    that exists as a socket; else the first candidate (to name in the error)."""
+    if path:
+        return path, [path]
+    cands = socket_candidates()
+    for c in cands:
+        try:
+            if Path(c).is_socket():
+                return c, cands
+        except OSError:
+            continue
+    return cands[0], cands
 
 
 class StatusServer:
@@ -47,13 +101,15 @@ class StatusServer:
                 probe.settimeout(0.5)
                 probe.connect(str(p))
                 probe.close()
-                raise RuntimeError(f"another fieldguard daemon is answering on {p}")
-            except (ConnectionRefusedError, FileNotFoundError, socket.timeout, OSError) as exc:
-                if isinstance(exc, RuntimeError):
-                    raise
+                raise StatusSocketInUse(
+                    f"another fieldguard daemon is answering on {p}: stop it first "
+                    f"(`fieldguard status --socket {p}` shows it), or give this one its own "
+                    f"--socket PATH")
+            except (ConnectionRefusedError, FileNotFoundError, socket.timeout, OSError):
                 p.unlink(missing_ok=True)
         s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         s.bind(str(p))
+        self._bound = True          # only a socket this server bound is removed on stop
         os.chmod(str(p), 0o660)
         s.listen(8)
         s.settimeout(0.2)
@@ -101,13 +157,14 @@ class StatusServer:
             self._sock.close()
         if self._thread is not None:
             self._thread.join(timeout=1.0)
-        Path(self.path).unlink(missing_ok=True)
+        if getattr(self, "_bound", False):
+            Path(self.path).unlink(missing_ok=True)
 
 
 def request(path: str | None, line: str, timeout_s: float = 5.0) -> bytes:
     """Send one request line to the daemon and return its whole answer. ConnectionError with a
     clear message if no daemon answers."""
-    p = path or default_socket_path()
+    p, looked = find_socket(path)
     s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     s.settimeout(timeout_s)
     try:
@@ -120,8 +177,12 @@ def request(path: str | None, line: str, timeout_s: float = 5.0) -> bytes:
                 break
             chunks.append(b)
     except (FileNotFoundError, ConnectionRefusedError):
-        raise ConnectionError(f"no fieldguard daemon is answering on {p} (is it running? "
-                              f"`systemctl status fieldguard`, or pass --socket)") from None
+        where = p if len(looked) == 1 else f"{p} (looked in {', '.join(looked)})"
+        raise ConnectionError(f"no fieldguard daemon is answering on {where}: is it running? "
+                              f"`systemctl status fieldguard`, or pass --socket PATH") from None
+    except PermissionError:
+        raise ConnectionError(f"not allowed to open {p}: run as root or as a member of the "
+                              f"fieldguard group") from None
     except socket.timeout:
         raise ConnectionError(f"the daemon on {p} did not answer within {timeout_s} s") from None
     finally:

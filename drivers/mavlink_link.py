@@ -195,6 +195,29 @@ class MavlinkVehicleLink(VehicleLink):
     def from_config(cls, cfg, clock, shared):
         return cls(cfg.name, clock, cfg.timeout_s, **dict(cfg.options))
 
+    NET_PREFIXES = ("udpin", "udpout", "udpbcast", "udp", "tcp", "tcpin")
+
+    @classmethod
+    def check_options(cls, options) -> tuple[str, str] | None:
+        """(key, message) for an option ``open`` would refuse (config check and run agree),
+        else None. A connection is ``PREFIX:HOST:PORT`` or a serial device path."""
+        conn = options.get("connection", "udpout:127.0.0.1:14550")
+        want = ("expected udpout:HOST:PORT, udpin:HOST:PORT or tcp:HOST:PORT (also udp:, "
+                "udpbcast:, tcpin:) or a serial device such as /dev/ttyACM0")
+        if conn.startswith("/"):
+            return None
+        prefix, sep, rest = conn.partition(":")
+        host, sep2, port = rest.rpartition(":")
+        if not sep or prefix not in cls.NET_PREFIXES:
+            return "connection", f"{conn!r} is not a MAVLink connection: {want}"
+        if not sep2 or not host or not port.isdigit() or not 0 < int(port) < 65536:
+            return "connection", (f"{conn!r}: needs HOST:PORT after {prefix}: (a port 1-65535), "
+                                  f"e.g. {prefix}:127.0.0.1:14550")
+        sysid = options.get("sysid", 1)
+        if not 1 <= sysid <= 255:
+            return "sysid", f"must be 1..255, got {sysid}"
+        return None
+
     # ---- life cycle ---------------------------------------------------------------------------
     def _open(self) -> None:
         os.environ.setdefault("MAVLINK20", "1")

@@ -26,7 +26,12 @@ def daemon(tmp_path_factory):
     d.start()
     th = threading.Thread(target=d.run, daemon=True)
     th.start()
-    time.sleep(1.5)
+    # up once every device has fresh data (a wall-time sleep raced a loaded host's first cycles)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and not (
+            d.loop.last is not None and all(dev.health().state.value == "ok"
+                                            for dev in d.devices.values())):
+        time.sleep(0.1)
     yield d, sock, tmp
     d.request_stop()
     th.join(5)
@@ -64,7 +69,11 @@ def test_selftest_fails_a_dead_device_with_a_fix(daemon, capsys):
     d, sock, _ = daemon
     d.devices["laser"].unplugged = True
     try:
-        time.sleep(0.6)
+        # stale once the SIM clock has passed its timeout: on a loaded host the lock-step
+        # loop runs slower than real time, so wait for that, not for wall time
+        deadline = time.monotonic() + 20
+        while d.devices["laser"].health().state.value == "ok" and time.monotonic() < deadline:
+            time.sleep(0.1)
         rc = main(["selftest", "--socket", sock])
         out = capsys.readouterr().out
     finally:

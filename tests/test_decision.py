@@ -140,21 +140,3 @@ def test_the_loop_decides_on_tracks_with_the_same_core():
     (t,) = st["tracks"]
     assert t["sources"] == ["laser"] and abs(t["x_m"] - 4.0) < 0.2 and t["confirmed"]
     assert link.sent[-1].state is GateState.STOP and "track" in link.sent[-1].reason
-
-
-def test_snapshot_draws_the_tracks_and_status_text_lists_them():
-    from appliance.cli import format_status
-    from appliance.snapshot import TRACK_BGR, compose, grid_panel, track_label
-    cfg = dataclasses.replace(tracks_cfg(), grid=GridConfig(occupied_at=1.0))
-    clock, loop, laser, link = make_loop(cfg)
-    laser.put_obstacle(6.0, 0.0)
-    for _ in range(12):
-        res = loop.cycle()
-        clock.advance(DT)
-    (t,) = [t for t in res.tracks if t.confirmed]
-    assert track_label(t).startswith(f"#{t.id} 6.") and track_label(t).endswith("laser")
-    img = grid_panel(res, loop.grid.evidence, cfg)
-    assert np.any(np.all(img == np.array(TRACK_BGR, np.uint8), axis=2))
-    assert compose(res, loop.grid.evidence, cfg, loop.status()).shape[0] > img.shape[0]
-    text = format_status(loop.status())
-    assert f"track {t.id}" in text and "laser" in text
