@@ -3,6 +3,7 @@ running daemon over its status socket and never open hardware the daemon owns (s
 the configured devices itself only when no daemon is running)."""
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 import time
@@ -120,19 +121,54 @@ def cmd_record(a) -> int:
         print(f"fieldguard: error: the daemon refused to record: {exc}", file=sys.stderr)
         return 1
     print(f"recording {doc['seconds']} s into {doc['recording']} (the daemon writes it; "
-          f"`fieldguard replay {out}` plays it back)")
-    if a.wait:
-        deadline = time.monotonic() + a.seconds + 10
-        while time.monotonic() < deadline:
-            if (out / "frames.csv").exists():
-                n = sum(1 for _ in open(out / "frames.csv")) - 1
-                print(f"\r{n} frames", end="", flush=True)
-            time.sleep(0.5)
-        print()
+          f"`fieldguard replay {out}` plays it back)", flush=True)
+    if not a.detach or getattr(a, "mcap", None):
+        rc = _follow_recording(a, out)
+        if rc:
+            return rc
     if getattr(a, "mcap", None):
         from appliance.mcap_export import export_after_record
         return export_after_record(out, a.mcap, a.seconds, a.socket)
     return 0
+
+
+def _follow_recording(a, out: Path) -> int:
+    """Progress until the daemon says the recording is written, then "done"."""
+    from appliance.status import request_json
+    tty = sys.stdout.isatty()
+    # the daemon's clock may run slower than the wall clock (a loaded simulator): a generous
+    # deadline, and only while the daemon keeps answering
+    limit_s = 3 * a.seconds + 30
+    deadline = time.monotonic() + limit_s
+    last = None
+    while True:
+        try:
+            st = request_json(a.socket, f"record-status {out}")
+        except ConnectionError as exc:
+            raise FieldguardError(f"lost the daemon while it recorded {out}: {exc}") from None
+        except RuntimeError as exc:
+            raise FieldguardError(f"the daemon cannot say how the recording goes: {exc}") \
+                from None
+        line = f"recording: {st['written']} frames written"
+        if st.get("dropped"):
+            line += f", {st['dropped']} dropped (the writer could not keep up)"
+        if st.get("done"):
+            if tty and last is not None:
+                print()
+            if st.get("error"):
+                raise FieldguardError(f"the recording {out} failed: {st['error']}")
+            print(f"done: {st['written']} frames in {out}"
+                  + (f" ({st['dropped']} dropped)" if st.get("dropped") else ""), flush=True)
+            return 0
+        if tty:
+            print(f"\r{line}", end="", flush=True)
+        elif line != last:
+            print(line, flush=True)
+        last = line
+        if time.monotonic() > deadline:
+            raise FieldguardError(f"the recording {out} is not finished after {limit_s:.0f} s; "
+                                  f"see `fieldguard status`")
+        time.sleep(0.5)
 
 
 def cmd_replay(a) -> int:
@@ -180,7 +216,10 @@ def register(sub) -> None:
                                    "folder.")
     r.add_argument("--seconds", type=float, required=True)
     r.add_argument("--out", required=True, help="new run folder (never overwritten)")
-    r.add_argument("--wait", action="store_true", help="show progress until it is written")
+    r.add_argument("--detach", action="store_true",
+                   help="return at once (default: show progress until it is written, then "
+                        "\"done\")")
+    r.add_argument("--wait", action="store_true", help=argparse.SUPPRESS)   # the default now
     r.add_argument("--mcap", metavar="FILE.mcap",
                    help="when it is written, export it for Foxglove as well (fieldguard export)")
     r.add_argument("--socket")

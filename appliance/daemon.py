@@ -94,6 +94,7 @@ class Daemon:
         self.loop: ApplianceLoop | None = None
         self.pipelines = []
         self.recorder: Recorder | None = None
+        self._record_jobs: dict = {}       # path -> recorder job, for record-status
         self.notifier = notifier if notifier is not None else Notifier()
         self._ready = False
         self.day_night = None
@@ -199,7 +200,16 @@ class Daemon:
             if not 0 < seconds <= 3600:
                 return {"error": "seconds must be in (0, 3600]"}
             job = self.recorder.record(seconds, words[2], self.clock.now_ns())
+            self._record_jobs[str(job.path)] = job
+            while len(self._record_jobs) > 20:          # the newest few are enough
+                self._record_jobs.pop(next(iter(self._record_jobs)))
             return {"recording": str(job.path), "seconds": seconds}
+        if cmd == "record-status" and len(words) == 2:  # progress of `fieldguard record`
+            job = self._record_jobs.get(words[1])
+            if job is None:
+                return {"error": f"no recording {words[1]} asked of this daemon"}
+            return {"recording": str(job.path), "written": job.written,
+                    "dropped": job.dropped, "done": job.done.is_set(), "error": job.error}
         if cmd == "record-status":
             return {"incidents": list(self.recorder.incidents)}
         return {"error": f"unknown request {cmd!r}"}
