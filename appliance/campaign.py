@@ -408,8 +408,10 @@ class Campaign:
         self.extra = load_extra_config(config_file)
         self.config_file = config_file
         self.progress, self.report, self.command = progress, report, command
+        # seed by seed, each seed over the kinds: a campaign stopped early has every kind
         self.specs = [make_spec(k, s, self.minutes, self.stereo_scale, self.extra)
-                      for k in self.kinds for s in self.seeds]
+                      for s in self.seeds for k in self.kinds]
+        self.interrupted = False
         self.failed: dict[str, str] = {}
 
     def finished(self) -> dict[str, dict]:
@@ -443,10 +445,13 @@ class Campaign:
         prog(len(done), prog.skipped_h, force=True)
         workers = self.workers
         if todo:
-            if use_ray:
-                workers = self._run_ray(todo, done, prog)
-            else:
-                self._run_local(todo, done, prog)
+            try:
+                if use_ray:
+                    workers = self._run_ray(todo, done, prog)
+                else:
+                    self._run_local(todo, done, prog)
+            except KeyboardInterrupt:      # ^C / SIGTERM: the finished drives' summary
+                self.interrupted = True
         wall_s = time.perf_counter() - w0
         results = [done[drive_id(sp["kind"], sp["seed"])] for sp in self.specs
                    if drive_id(sp["kind"], sp["seed"]) in done]
@@ -462,10 +467,17 @@ class Campaign:
                         "config_file": self.config_file, "address": self.address})
         if self.failed:
             summary["failed_drives"] = dict(self.failed)
+        summary["complete"] = len(results) == len(self.specs)
+        summary["drives_planned"] = len(self.specs)
         _atomic_write(self.out / "summary.json", json.dumps(summary, indent=2))
         if self.report and results:
             from appliance.campaign_report import write_report
             write_report(self.out, summary)
+        if self.interrupted:
+            raise CampaignError(
+                f"interrupted: {len(results)} of {len(self.specs)} drives finished; their "
+                f"summary is in {self.out}/summary.json; run the same command again to drive "
+                "the rest")
         if self.failed:
             raise CampaignError(
                 f"{len(self.failed)} drive(s) failed ({', '.join(sorted(self.failed))}); the "
@@ -572,6 +584,11 @@ def cmd_campaign(a) -> int:
     import logging
     if not getattr(a, "verbose", False):       # each drive's daemon start / stop lines
         logging.getLogger("fieldguard").setLevel(logging.WARNING)
+    import signal
+
+    def _term(*_):
+        raise KeyboardInterrupt
+    signal.signal(signal.SIGTERM, _term)
     camp = Campaign(a.scene, a.seeds, a.minutes, a.out, workers=a.workers, address=a.address,
                     config_file=a.config, stereo_scale=a.stereo_scale,
                     report=not a.no_report,

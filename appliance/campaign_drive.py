@@ -454,6 +454,7 @@ class Drive:
                 by_cause[e["cause"]] = by_cause.get(e["cause"], 0) + 1
         cruise = self.scene.cruise_mps
         bound = self.model_bound
+        self._rss.append(rss_mb())
         return {
             "kind": self.kind, "seed": self.seed, "minutes": self.minutes,
             "stereo_scale": self.stereo_scale,

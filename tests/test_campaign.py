@@ -230,3 +230,24 @@ def test_eval_many_runs_on_ray_is_one_table_equal_to_one_by_one(tmp_path, capsys
     # one bad folder: named, the others still scored, exit 2
     rc = main(["eval", runs[0], str(tmp_path / "nowhere"), "--workers", "1"])
     assert rc == 2 and "no such run folder" in capsys.readouterr().err
+
+
+def test_interrupted_campaign_writes_the_finished_drives_summary(campaigns, tmp_path,
+                                                                 monkeypatch):
+    import shutil
+
+    import appliance.campaign as campaign
+    base, cfg, local, _ = campaigns
+    out = tmp_path / "half"
+    shutil.copytree(base / "local" / "drives", out / "drives")
+    (out / "drives" / "stubble-day-2" / "result.json").unlink()
+
+    def interrupted(spec, report=None):          # ^C / SIGTERM during the second drive
+        raise KeyboardInterrupt
+    monkeypatch.setattr(campaign, "run_drive", interrupted)
+    with pytest.raises(CampaignError, match="interrupted: 1 of 2 drives finished"):
+        Campaign(KINDS, SEEDS, MINUTES, out, workers=1, config_file=str(cfg),
+                 stereo_scale=0.25, progress=False).run()
+    s = json.loads((out / "summary.json").read_text())
+    assert s["complete"] is False and s["drives"] == 1 and s["drives_planned"] == 2
+    assert s["per_drive"] == [d for d in local["per_drive"] if d["seed"] == 1]
