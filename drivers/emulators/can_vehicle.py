@@ -6,6 +6,11 @@ Sends wheel-based speed (PGN 65096, SA 0xF0) at 10 Hz; decodes every frame from 
 cantools from the shipped DBC, and applies the contract: STOP unless a FG_SafetyStatus with a
 good CRC and a new alive counter arrived within 300 ms and says SLOW/CLEAR. stdin commands:
 ``silent``, ``talk``, ``speed V``, ``report``, ``quit``. ``report`` prints one JSON line.
+``busoff`` puts one error frame with CAN_ERR_BUSOFF on the bus (what SocketCAN hands a node
+whose controller went bus-off; python-can's udp_multicast carries error frames). With
+``--events`` every change of the vehicle's own verdict is printed as
+``{"ev": "state", "stop": bool, "state": "STOP|SLOW|CLEAR|timeout|bad_crc|bad_counter", "t":
+monotonic}``; ``report`` then also has ``lost`` (alive-counter gaps: frames that never came).
 """
 from __future__ import annotations
 
@@ -23,15 +28,26 @@ from drivers.j1939 import J1939Id, crc8_sae_j1850, make_id  # noqa: E402
 
 def main():
     iface, channel, dbc = sys.argv[1:4]
+    events = "--events" in sys.argv[4:]
     db = cantools.database.load_file(dbc)
     by_pgn = {J1939Id.parse(m.frame_id).pgn: m for m in db.messages}
     bus = can.Bus(interface=iface, channel=channel)
     st = {"silent": False, "speed": 1.0}
     rep = {"status_ok": 0, "bad_crc": 0, "bad_counter": 0, "states": {}, "sa": [],
            "aiso": [], "sectors": 0, "last_status": None, "vehicle_stop": True,
-           "stops_by_timeout": 0, "max_gap_ms": 0.0, "claims": []}
+           "stops_by_timeout": 0, "max_gap_ms": 0.0, "claims": [], "lost": 0}
     lock = threading.Lock()
     last = {"t": None, "ctr": None}
+
+    def verdict(stop: bool, why: str, now: float) -> None:
+        """The vehicle's own STOP/go verdict (under the lock); printed when it changes."""
+        was = rep["vehicle_stop"]
+        rep["vehicle_stop"] = stop
+        if events and (stop != was or why != last.get("why")):
+            last["why"] = why
+            sys.stdout.write(json.dumps({"ev": "state", "stop": stop, "state": why,
+                                         "t": now, "lost": rep["lost"]}) + "\n")
+            sys.stdout.flush()
 
     def report():
         with lock:
@@ -51,7 +67,10 @@ def main():
                 elif p[0] == "reset":
                     rep.update(status_ok=0, bad_crc=0, bad_counter=0, states={}, aiso=[],
                                max_gap_ms=0.0, stops_by_timeout=0)
-            if p[0] == "report":
+            if p[0] == "busoff":
+                bus.send(can.Message(arbitration_id=0x40, is_error_frame=True, dlc=8,
+                                     data=bytes(8)))
+            elif p[0] == "report":
                 report()
             elif p[0] == "quit":
                 bus.shutdown()
@@ -81,7 +100,7 @@ def main():
         now = time.monotonic()
         with lock:
             if last["t"] is not None and now - last["t"] > 0.3 and not rep["vehicle_stop"]:
-                rep["vehicle_stop"] = True          # the contract: 300 ms without a valid frame
+                verdict(True, "timeout", now)       # the contract: 300 ms without a valid frame
                 rep["stops_by_timeout"] += 1
             if msg is None:
                 continue
@@ -97,12 +116,13 @@ def main():
                 sig = m.decode(data, decode_choices=True)
                 if crc8_sae_j1850(data[:7]) != data[7]:
                     rep["bad_crc"] += 1
-                    rep["vehicle_stop"] = True
+                    verdict(True, "bad_crc", now)
                     continue
                 ctr = sig["FG_AliveCounter"]
                 if last["ctr"] is not None and ctr != (last["ctr"] + 1) % 16:
                     rep["bad_counter"] += 1
-                    rep["vehicle_stop"] = True
+                    rep["lost"] += (ctr - last["ctr"] - 1) % 16
+                    verdict(True, "bad_counter", now)
                     last["ctr"] = ctr
                     continue
                 if last["t"] is not None:
@@ -111,7 +131,7 @@ def main():
                 rep["status_ok"] += 1
                 state = str(sig["FG_State"])
                 rep["states"][state] = rep["states"].get(state, 0) + 1
-                rep["vehicle_stop"] = state == "STOP"
+                verdict(state == "STOP", state, now)
                 rep["last_status"] = {k: (str(v) if not isinstance(v, (int, float)) else v)
                                       for k, v in sig.items()}
                 if jid.sa not in rep["sa"]:

@@ -45,12 +45,18 @@ def main():
     ap.add_argument("connection")
     ap.add_argument("--sysid", type=int, default=1)
     ap.add_argument("--rate", type=float, default=20.0)
+    ap.add_argument("--states", action="store_true",
+                    help="print every HEARTBEAT from a component 196 (the box) as "
+                         '{"ev": "hb", "status": MAV_STATE, "t": monotonic, "lost": n, "rx": n}; '
+                         "lost counts gaps in the box's packet sequence numbers")
     a = ap.parse_args()
     m = mavutil.mavlink_connection(a.connection, source_system=a.sysid, source_component=1,
                                    dialect="ardupilotmega")
     st = {"silent": False, "mode": 10, "refuse": 0, "drop": 0, "speed": 1.5, "nan": False}
     lock = threading.Lock()
     seen = set()
+    box_seq = {}                      # (sysid, compid) -> last packet sequence number
+    box_rx = {"rx": 0, "lost": 0}
 
     def stdin_reader():
         for line in sys.stdin:
@@ -110,6 +116,15 @@ def main():
         if msg is None:
             continue
         t = msg.get_type()
+        if a.states and t != "BAD_DATA" and msg.get_srcComponent() == 196:
+            src = (msg.get_srcSystem(), 196)
+            seq = msg.get_seq()
+            if src in box_seq:
+                box_rx["lost"] += (seq - box_seq[src] - 1) % 256
+            box_seq[src] = seq
+            box_rx["rx"] += 1
+            if t == "HEARTBEAT":
+                emit(ev="hb", status=msg.system_status, t=time.monotonic(), **box_rx)
         if t not in seen and t != "BAD_DATA":
             seen.add(t)
             emit(ev="rx", type=t, src=[msg.get_srcSystem(), msg.get_srcComponent()])

@@ -24,6 +24,8 @@ Commands on stdin, one per line:
     split on|off             send every telegram in 10 pieces (cut after the STX, inside
                              tokens and before the ETX) with 1 ms pauses
     drop                     close every client connection now (the cable is pulled)
+    rate HZ                  scans from now on at HZ (e.g. 4: every scan late for a 25 Hz
+                             driver's timeout); ``rate 25`` back to normal
     object X_M [WIDTH_M]     put a post X_M metres straight ahead of the scanner
     clear                    remove the post
     quit
@@ -125,6 +127,7 @@ class SickLms1xxEmulator:
         self.scans = [np.asarray(s, np.float32) for s in scans]
         self.host, self.port = host, port
         self.scan_hz = float(scan_hz)
+        self.declared_hz = self.scan_hz         # what the telegrams say (a late scan is late)
         self.serial = serial
         self.password = password
         self.rssi = rssi
@@ -210,6 +213,8 @@ class SickLms1xxEmulator:
             self.truncate_next()
         elif c == "corrupt":
             self.corrupt_next(w[1] if len(w) > 1 else "hex")
+        elif c == "rate":
+            self.scan_hz = max(0.2, float(w[1]))
         elif c == "split":
             self.split = len(w) < 2 or w[1] == "on"
         elif c == "drop":
@@ -252,7 +257,7 @@ class SickLms1xxEmulator:
             tel = encode_scandata(r, g.angle_min_deg + 90.0, g.angle_step_deg,
                                   telegram_counter=self.telegram_counter,
                                   scan_counter=self.scan_counter, time_us=t_us,
-                                  scan_hz=self.scan_hz, serial=self.serial, rssi=rssi,
+                                  scan_hz=self.declared_hz, serial=self.serial, rssi=rssi,
                                   method=method, scale=self.scale)
             self.last_sent = (self.telegram_counter, r)
             self.history.append(self.last_sent)
@@ -324,7 +329,6 @@ class SickLms1xxEmulator:
     def _serve(self, c: socket.socket) -> None:
         state = {"level": 0, "subscribed": False}
         buf = b""
-        period = 1.0 / self.scan_hz
         next_scan = time.monotonic()
         try:
             while not self._stop.is_set():
@@ -347,6 +351,7 @@ class SickLms1xxEmulator:
                 now = time.monotonic()
                 if now < next_scan:
                     continue
+                period = 1.0 / self.scan_hz              # "rate" may change it
                 next_scan = max(next_scan + period, now - period)
                 if not (state["subscribed"] and self.measuring) or self.silent:
                     continue

@@ -1,0 +1,874 @@
+#!/usr/bin/env python3
+"""The chaos soak: the daemon with its devices at the wire while a seeded schedule injects
+faults, judged from outside (what the vehicle peers received on the wire) and by the box's own
+status socket (``fieldguard status --json`` reads the same document).
+
+    .venv/bin/python tools/soak.py --minutes M --seed S --out DIR [--json] [--interval 20]
+
+Needs root and iproute2 (a network namespace of its own: CAN frames over python-can's
+udp_multicast stay in it), socat and MAVProxy. In the namespace:
+
+* the SICK LMS1xx emulator on TCP (drivers/emulators/sick_lms1xx.py), a post-free field;
+* the strobe/trigger controller emulator on a socat pty pair (drivers/emulators/strobe.py);
+* a scripted MAVLink vehicle (drivers/emulators/mav_vehicle.py) behind MAVProxy; it prints every
+  HEARTBEAT the box sends (system_status 4 CLEAR, 5 SLOW, 6 STOP) and the box's packet gaps;
+* the CAN vehicle side (drivers/emulators/can_vehicle.py) applying the 300 ms / alive counter /
+  CRC contract, printing each change of its verdict;
+* ``fieldguard run`` on those four devices (laser pipeline), its incident recordings on a 1 MB
+  tmpfs (the disk under the recorder fills up; the fault ``disk_full`` fills what is left).
+
+Faults (one at a time, every ``--interval`` s with 20 % jitter, kind and duration from the
+seed): the laser silent, late (4 Hz for a 25 Hz driver), garbage, truncated and corrupt
+telegrams, unplugged (emulator killed) and back; the trigger controller silent, garbage, half a
+line, bad checksum, stalled, reporting a lamp fault, unplugged (pty pair gone) and back; the
+autopilot silent (link loss); a refused HOLD (obstacle -> STOP -> DENIED); CAN bus-off (an error
+frame with CAN_ERR_BUSOFF); the CAN speed source silent; CPU starvation (the daemon SIGSTOPped
+0.4-0.8 s: the loop lags); the recorder's disk full; SIGTERM and SIGKILL with a restart.
+
+For every fault: when it became detectable (the injection's wire time where the emulator reports
+it, else the command time plus the device's freshness timeout), the first STOP the MAVLink
+vehicle heard after it (latency in 10 Hz cycles, also from the CAN vehicle), false CLEARs (a
+CLEAR or SLOW heard from 2 cycles after it was detectable until it was removed), and recovery
+(CLEAR again). SIGKILL leaves nothing to send: there the vehicle's own failsafe (CAN: 300 ms
+without a frame) is measured, apart. Every second: the daemon's RSS and open fds from /proc,
+and its status document (overruns = deadline misses). Writes DIR/summary.json, DIR/events.json
+and PNG plots (OpenCV drawing); ``--json`` prints the summary.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import random
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+os.environ.setdefault("MAVLINK20", "1")
+
+from tools.linkrig import PY, Peer, free_udp_port, wait_for  # noqa: E402
+
+GROUP = "239.74.163.3"
+SYSID = 42
+PERIOD_S = 0.1
+MAV_STOP, MAV_CLEAR = 6, 4
+STATE_NAME = {4: "CLEAR", 5: "SLOW", 6: "STOP"}
+LASER_TIMEOUT, TRIGGER_TIMEOUT, MAV_TIMEOUT, CAN_TIMEOUT = 0.1, 0.1, 0.5, 0.3
+FAULT_HOLD_S = 0.3
+# kind -> weight in the schedule (restarts rarer: each one starts a new process to watch)
+FAULTS = {"sick_silent": 3, "sick_late": 3, "sick_garbage": 3, "sick_truncate": 2,
+          "sick_corrupt": 2, "sick_unplug": 2, "strobe_silent": 2, "strobe_garbage": 2,
+          "strobe_half": 2, "strobe_badsum": 2, "strobe_stall": 2, "strobe_fault": 2,
+          "strobe_unplug": 2, "mav_silent": 3, "mav_refuse": 2, "can_busoff": 2,
+          "can_silent": 2, "cpu_starve": 3, "disk_full": 1, "sigterm": 1, "sigkill": 1}
+
+
+def die(msg: str) -> None:
+    print(f"fieldguard: error: {msg}", file=sys.stderr)
+    sys.exit(2)
+
+
+def free_tcp_port() -> int:
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    p = s.getsockname()[1]
+    s.close()
+    return p
+
+
+# ---- the wire ----------------------------------------------------------------------------------
+class Wire:
+    """Every device emulator and vehicle peer, each restartable."""
+
+    def __init__(self, out: Path):
+        self.out = out
+        self.sick_port = free_tcp_port()
+        self.tty_a, self.tty_b = str(out / "ttyA"), str(out / "ttyB")
+        self.mav_in, self.mav_out = free_udp_port(), free_udp_port()
+        self.sick = self.strobe = self.socat = self.mpx = self.mav = self.can = None
+        self.old_events: dict[str, list] = {"sick": [], "mav": [], "can": [], "strobe": []}
+
+    def _keep(self, name, peer):
+        if peer is not None:
+            self.old_events[name] += list(peer.events)
+
+    def start_sick(self):
+        self._keep("sick", self.sick)
+        self.sick = Peer([PY, "-m", "drivers.emulators.sick_lms1xx", "--port",
+                          str(self.sick_port), "--scene", "stubble-empty", "--frames", "4"])
+        if not wait_for(lambda: self.sick.find(event="listening"), 60):
+            die(f"the SICK emulator did not start: {self.sick.stop()[-500:]}")
+
+    def start_strobe(self):
+        self._keep("strobe", self.strobe)
+        for p in (self.tty_a, self.tty_b):
+            if os.path.lexists(p):
+                os.unlink(p)
+        self.socat = subprocess.Popen(["socat", f"pty,rawer,link={self.tty_a}",
+                                       f"pty,rawer,link={self.tty_b}"],
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        if not wait_for(lambda: os.path.exists(self.tty_a) and os.path.exists(self.tty_b), 10):
+            die("socat did not make the pty pair")
+        self.strobe = Peer([PY, "-m", "drivers.emulators.strobe", "--port", self.tty_b])
+        if not wait_for(lambda: self.strobe.find(event="ready"), 20):
+            die(f"the strobe emulator did not start: {self.strobe.stop()[-500:]}")
+
+    def unplug_strobe(self):
+        self.socat.kill()
+        self.socat.wait()
+        self.strobe.cmd("quit")
+        self.strobe.stop()
+
+    def start_mavlink(self):
+        mavproxy = shutil.which("mavproxy.py", path=str(Path(PY).parent)) or \
+            shutil.which("mavproxy.py")
+        if mavproxy is None:
+            die("MAVProxy is not installed (tools/ci_system_deps.sh installs it)")
+        d = self.out / "mavproxy"
+        d.mkdir(exist_ok=True)
+        self.mpx = subprocess.Popen([PY, mavproxy, f"--master=udpin:127.0.0.1:{self.mav_in}",
+                                     f"--out=udpin:127.0.0.1:{self.mav_out}", "--daemon",
+                                     "--non-interactive", f"--state-basedir={d}"], cwd=d,
+                                    stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                    stderr=subprocess.DEVNULL)
+        self.mav = Peer([PY, "-m", "drivers.emulators.mav_vehicle",
+                         f"udpout:127.0.0.1:{self.mav_in}", "--states"])
+        if not wait_for(lambda: self.mav.find(ev="ready"), 30):
+            die("the MAVLink vehicle did not start")
+        from pymavlink import mavutil
+        probe = mavutil.mavlink_connection(f"udpout:127.0.0.1:{self.mav_out}",
+                                           source_system=250, source_component=1)
+        try:                     # MAVProxy up and forwarding both ways before the box starts
+            end, heard = time.monotonic() + 60, False
+            while time.monotonic() < end:
+                probe.mav.system_time_send(0, 0)
+                m = probe.recv_match(type="HEARTBEAT", blocking=True, timeout=0.2)
+                heard = heard or (m is not None and m.get_srcSystem() == 1)
+                if heard and self.mav.find(ev="rx", type="SYSTEM_TIME"):
+                    break
+            else:
+                die("MAVProxy did not forward between the box's port and the vehicle")
+        finally:
+            probe.close()
+
+    def start_can(self):
+        from drivers.can_link import DEFAULT_DBC
+        self.can = Peer([PY, "-m", "drivers.emulators.can_vehicle", "udp_multicast", GROUP,
+                         DEFAULT_DBC, "--events"])
+        if not wait_for(lambda: self.can.find(ev="ready"), 30):
+            die(f"the CAN vehicle did not start: {self.can.stop()[-500:]}")
+
+    def events(self, name):
+        cur = getattr(self, name)
+        return self.old_events[name] + (list(cur.events) if cur is not None else [])
+
+    def stop(self):
+        for p in (self.sick, self.strobe, self.mav, self.can):
+            if p is not None:
+                try:
+                    p.cmd("quit")
+                except (OSError, ValueError):
+                    pass
+                p.stop()
+        for p in (self.socat, self.mpx):
+            if p is not None and p.poll() is None:
+                p.terminate()
+                try:
+                    p.wait(5)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+
+
+# ---- the box -----------------------------------------------------------------------------------
+class Box:
+    def __init__(self, out: Path, wire: Wire):
+        self.out, self.wire = out, wire
+        self.cfg = out / "soak.toml"
+        self.sock = out / "status.sock"
+        self.incidents = out / "incidents"
+        self.proc: subprocess.Popen | None = None
+        self.starts: list[float] = []
+        self.log = open(out / "daemon.log", "ab")
+
+    def write_config(self):
+        from drivers.can_link import DEFAULT_DBC  # noqa: F401  (fail early without python-can)
+        self.cfg.write_text(f"""# written by tools/soak.py
+[gate]
+hold_off_s = 1.0
+
+[status]
+socket = "{self.sock}"
+incident_dir = "{self.incidents}"
+
+[devices.laser]
+type = "sick-lms1xx"
+host = "127.0.0.1"
+port = {self.wire.sick_port}
+timeout_s = {LASER_TIMEOUT}
+backoff_max_s = 0.5
+
+[devices.trigger]
+type = "serial"
+port = "{self.wire.tty_a}"
+timeout_s = {TRIGGER_TIMEOUT}
+backoff_max_s = 0.5
+
+[devices.link]
+type = "mavlink"
+connection = "udpout:127.0.0.1:{self.wire.mav_out}"
+sysid = {SYSID}
+timeout_s = {MAV_TIMEOUT}
+ack_timeout_s = 0.2
+retry_max_s = 0.8
+
+[devices.can]
+kind = "link"
+type = "can-j1939"
+interface = "udp_multicast"
+channel = "{GROUP}"
+timeout_s = {CAN_TIMEOUT}
+""")
+
+    def start(self):
+        exe = Path(PY).parent / "fieldguard"
+        argv = [str(exe)] if exe.exists() else [PY, "-m", "appliance.cli"]
+        self.log.write(f"\n==== start {time.monotonic():.3f}\n".encode())
+        self.log.flush()
+        self.proc = subprocess.Popen(argv + ["run", "--config", str(self.cfg)], cwd=str(ROOT),
+                                     stdin=subprocess.DEVNULL, stdout=self.log,
+                                     stderr=subprocess.STDOUT)
+        self.starts.append(time.monotonic())
+
+    @property
+    def pid(self):
+        return self.proc.pid if self.proc is not None else None
+
+    def alive(self):
+        return self.proc is not None and self.proc.poll() is None
+
+    def status(self):
+        from appliance.status import read_status
+        try:
+            return read_status(str(self.sock), timeout_s=0.5)
+        except Exception:
+            return None
+
+    def stop(self):
+        if self.alive():
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+# ---- the soak ----------------------------------------------------------------------------------
+class Soak:
+    def __init__(self, out: Path, minutes: float, seed: int, interval: float):
+        self.out, self.minutes, self.seed, self.interval = out, minutes, seed, interval
+        self.rng = random.Random(seed)
+        self.wire = Wire(out)
+        self.box = Box(out, self.wire)
+        self.faults: list[dict] = []
+        self.samples: list[dict] = []
+        self.stop_evt = threading.Event()
+        self.restarting = threading.Lock()
+        self.tmpfs = False
+        self.notes: list[str] = []
+        self.status_cli: list[dict] = []
+        self.load: list[float] = []
+
+    # ---- set-up ------------------------------------------------------------------------------
+    def setup(self):
+        self.box.incidents.mkdir(parents=True, exist_ok=True)
+        r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "fgsoak",
+                            str(self.box.incidents)], capture_output=True, text=True)
+        self.tmpfs = r.returncode == 0
+        if not self.tmpfs:
+            self.notes.append(f"no tmpfs for the recorder ({r.stderr.strip()}): disk_full "
+                              f"faults skipped")
+        self.wire.start_sick()
+        self.wire.start_strobe()
+        self.wire.start_mavlink()
+        self.wire.start_can()
+        self.box.write_config()
+        self.box.start()
+        threading.Thread(target=self._monitor, daemon=True).start()
+
+    def _monitor(self):
+        while not self.stop_evt.is_set():
+            t = time.monotonic()
+            pid = self.box.pid
+            s = {"t": t, "inc": len(self.box.starts), "pid": pid}
+            try:
+                with open(f"/proc/{pid}/status") as f:
+                    for line in f:
+                        if line.startswith("VmRSS:"):
+                            s["rss_mb"] = int(line.split()[1]) / 1024
+                s["fds"] = len(os.listdir(f"/proc/{pid}/fd"))
+                with open(f"/proc/{pid}/stat") as f:       # utime + stime: the box's own CPU
+                    st = f.read().rsplit(")", 1)[1].split()
+                s["cpu_s"] = (int(st[11]) + int(st[12])) / os.sysconf("SC_CLK_TCK")
+            except (OSError, TypeError):
+                pass
+            st = self.box.status() if self.box.alive() else None
+            if st:
+                loop = st.get("loop") or {}
+                s["state"] = st.get("state")
+                s["overruns"] = loop.get("overruns", st.get("overruns"))
+                s["cycles"] = loop.get("cycles", st.get("cycles"))
+            self.samples.append(s)
+            if self.box.proc is not None and self.box.proc.poll() is not None and \
+                    self.restarting.acquire(blocking=False):
+                try:                          # it died by itself: a restart, as systemd would
+                    self.notes.append(f"daemon exited by itself (rc {self.box.proc.returncode})"
+                                      f" at {t - self.t0:.1f} s; restarted")
+                    self.box.start()
+                finally:
+                    self.restarting.release()
+            self.stop_evt.wait(max(0.0, 1.0 - (time.monotonic() - t)))
+
+    def mav_state(self):
+        hb = [e for e in self.wire.events("mav") if e.get("ev") == "hb"]
+        return hb[-1]["status"] if hb else None
+
+    def wait_clear(self, timeout):
+        return wait_for(lambda: self.mav_state() == MAV_CLEAR, timeout, 0.05)
+
+    def wait_recovered(self, rec, timeout):
+        """The time of the first CLEAR heard after the fault was removed and after the STOP it
+        caused (None if none within ``timeout``)."""
+        t_in = rec.get("t_inject", time.monotonic())
+        t_rm = rec.get("t_removed", t_in)
+
+        def hbs():
+            return [e for e in self.wire.events("mav") if e.get("ev") == "hb"]
+        wait_for(lambda: any(e["status"] == MAV_STOP and e["t"] >= t_in for e in hbs()), 3, 0.05)
+        stops = [e["t"] for e in hbs() if e["status"] == MAV_STOP and e["t"] >= t_in]
+        after = max([t_rm] + stops[:1])
+
+        def clear_t():
+            h = hbs()
+            if h and h[-1]["status"] == MAV_CLEAR:
+                late = [e["t"] for e in h if e["t"] > after and e["status"] == MAV_CLEAR]
+                return late[0] if late else None
+            return None
+        wait_for(clear_t, timeout, 0.05)
+        return clear_t()
+
+    def cli_status(self):
+        exe = Path(PY).parent / "fieldguard"
+        if not exe.exists():
+            return
+        r = subprocess.run([str(exe), "status", "--json", "--socket", str(self.box.sock)],
+                           capture_output=True, text=True, timeout=30)
+        try:
+            doc = json.loads(r.stdout)
+        except ValueError:
+            doc = None
+        self.status_cli.append({"t": time.monotonic() - self.t0, "rc": r.returncode,
+                                "state": (doc or {}).get("state"),
+                                "reason": (doc or {}).get("reason")})
+
+    # ---- the faults ----------------------------------------------------------------------------
+    def _injected_t(self, name, n0, timeout=2.0):
+        """The wire time (s) of the emulator's next 'injected' event after the first n0."""
+        peer = getattr(self.wire, name)
+        ok = wait_for(lambda: len(peer.find(event="injected")) > n0, timeout)
+        return peer.find(event="injected")[n0]["t_ns"] / 1e9 if ok else None
+
+    def inject(self, kind: str, hold: float) -> dict:
+        w, now = self.wire, time.monotonic
+        f = {"kind": kind, "hold_s": round(hold, 2), "expect": "stop"}
+        t = now()
+        f["t_inject"] = t
+        if kind in ("sick_garbage", "sick_truncate", "sick_corrupt"):
+            n0 = len(w.sick.find(event="injected"))
+            w.sick.cmd({"sick_garbage": "garbage 64", "sick_truncate": "truncate",
+                        "sick_corrupt": "corrupt"}[kind])
+            tw = self._injected_t("sick", n0)
+            # a truncated telegram is known bad when the next one's STX arrives (one scan)
+            f["t_detect"] = (tw or t) + (0.04 if kind == "sick_truncate" else 0.0)
+            f["t_removed"] = f["t_detect"] + FAULT_HOLD_S
+        elif kind == "sick_silent":
+            w.sick.cmd("silent")
+            f["t_detect"] = t + LASER_TIMEOUT
+            time.sleep(hold)
+            w.sick.cmd("resume")
+        elif kind == "sick_late":
+            w.sick.cmd("rate 4")
+            f["t_detect"] = t + 0.04 + LASER_TIMEOUT   # the scan after the next one is late
+            time.sleep(hold)
+            w.sick.cmd("rate 25")
+        elif kind == "sick_unplug":
+            w.sick.proc.kill()
+            w.sick.proc.wait()
+            f["t_detect"] = now()
+            time.sleep(hold)
+            w.start_sick()
+        elif kind == "strobe_silent":
+            w.strobe.cmd("silent")
+            f["t_detect"] = t + TRIGGER_TIMEOUT
+            time.sleep(hold)
+            w.strobe.cmd("resume")
+        elif kind in ("strobe_garbage", "strobe_half", "strobe_badsum"):
+            w.strobe.cmd({"strobe_garbage": "garbage 40", "strobe_half": "half",
+                          "strobe_badsum": "badsum"}[kind])
+            # half a line is known bad when the next STATUS line completes it (40 ms)
+            f["t_detect"] = t + (0.04 if kind == "strobe_half" else 0.0)
+            f["t_removed"] = f["t_detect"] + FAULT_HOLD_S
+        elif kind == "strobe_stall":
+            w.strobe.cmd("stall")
+            f["t_detect"] = t + 0.1 + 0.04        # the next pulse due (10 Hz) + one STATUS poll
+            time.sleep(hold)
+            w.strobe.cmd("fire")
+        elif kind == "strobe_fault":
+            w.strobe.cmd("fault 2 strobe lamp open circuit")
+            f["t_detect"] = t
+            time.sleep(hold)
+            w.strobe.cmd("fault 0")
+        elif kind == "strobe_unplug":
+            w.unplug_strobe()
+            f["t_detect"] = now()
+            time.sleep(hold)
+            w.start_strobe()
+        elif kind == "mav_silent":
+            w.mav.cmd("silent")
+            f["t_detect"] = t + MAV_TIMEOUT
+            time.sleep(max(hold, MAV_TIMEOUT + 0.5))
+            w.mav.cmd("talk")
+        elif kind == "mav_refuse":
+            n0 = len(w.mav.find(ev="set_mode", answer="denied"))
+            w.mav.cmd("refuse 1000")
+            wait_for(lambda: w.mav.find(ev="ack_cmd", cmd="refuse"), 2)
+            w.sick.cmd("object 2.0")              # a post 2 m ahead of the scanner: STOP
+            ok = wait_for(lambda: len(w.mav.find(ev="set_mode", answer="denied")) > n0, 5)
+            f["obstacle_at"] = now() if not ok else None
+            den = w.mav.find(ev="set_mode", answer="denied")
+            f["t_detect"] = den[n0]["t"] if ok else t
+            f["refused"] = ok
+            w.sick.cmd("clear")                   # the post is gone; the refusal is not
+            time.sleep(hold)
+            w.mav.cmd("accept")
+        elif kind == "can_busoff":
+            w.can.cmd("busoff")
+            f["t_detect"] = t
+            f["t_removed"] = t
+        elif kind == "can_silent":
+            w.can.cmd("silent")
+            f["t_detect"] = t + CAN_TIMEOUT
+            time.sleep(hold)
+            w.can.cmd("talk")
+        elif kind == "cpu_starve":
+            pid = self.box.pid
+            os.kill(pid, signal.SIGSTOP)
+            time.sleep(self.rng.uniform(0.4, 0.8))
+            os.kill(pid, signal.SIGCONT)
+            f["t_detect"] = now()                 # the loop sees its lag when it runs again
+            f["t_removed"] = f["t_detect"]
+        elif kind == "disk_full":
+            f["expect"] = "runs on"
+            filler = self.box.incidents / "filler.bin"
+            with open(filler, "wb") as fh:
+                try:
+                    while True:
+                        fh.write(b"\0" * 65536)
+                        fh.flush()
+                except OSError:
+                    pass
+            f["t_detect"] = now()
+            w.sick.cmd("object 2.0")              # a STOP, so the recorder writes an incident
+            time.sleep(hold)
+            w.sick.cmd("clear")
+            f["daemon_alive"] = self.box.alive()
+            filler.unlink()
+        elif kind in ("sigterm", "sigkill"):
+            with self.restarting:
+                self.box.proc.send_signal(signal.SIGTERM if kind == "sigterm"
+                                          else signal.SIGKILL)
+                f["t_detect"] = t
+                try:
+                    f["exit_rc"] = self.box.proc.wait(10)
+                except subprocess.TimeoutExpired:
+                    self.box.proc.kill()
+                    f["exit_rc"] = self.box.proc.wait()
+                    f["note"] = "did not exit within 10 s of SIGTERM: killed"
+                f["exit_s"] = round(now() - t, 3)
+                if kind == "sigkill":
+                    f["expect"] = "vehicle failsafe"
+                time.sleep(hold)
+                self.box.start()
+            f["t_removed"] = now()
+        else:
+            raise ValueError(kind)
+        f.setdefault("t_removed", now())
+        return f
+
+    # ---- the run -----------------------------------------------------------------------------
+    def run(self):
+        self.t0 = time.monotonic()
+        self.setup()
+        end = self.t0 + self.minutes * 60
+        if not self.wait_clear(90):
+            self.notes.append("the box never reached CLEAR after start-up")
+        self.cli_status()
+        self.wire.mav.cmd("mode 10")            # the operator starts the mission
+        kinds = [k for k in FAULTS if self.tmpfs or k != "disk_full"]
+        weights = [FAULTS[k] for k in kinds]
+        nxt = time.monotonic() + 2.0
+        while True:
+            now = time.monotonic()
+            if nxt > end - 8:
+                break
+            time.sleep(max(0.0, nxt - now))
+            rec = {"pre_state": STATE_NAME.get(self.mav_state())}
+            if rec["pre_state"] != "CLEAR":
+                ok = self.wait_clear(20)
+                rec["pre_state"] = "CLEAR" if ok else STATE_NAME.get(self.mav_state())
+            kind = self.rng.choices(kinds, weights)[0]
+            hold = self.rng.uniform(1.5, 3.0)
+            try:
+                rec.update(self.inject(kind, hold))
+            except Exception as exc:                      # the soak tool's own trouble
+                rec.update(kind=kind, error=f"{type(exc).__name__}: {exc}")
+            self.faults.append(rec)
+            rec["recovered_at"] = self.wait_recovered(rec, 25)
+            self.wire.mav.cmd("mode 10")     # the operator resumes the mission after a stop
+            self.load.append(os.getloadavg()[0])
+            nxt = max(time.monotonic() + 1.0,
+                      nxt + self.interval * self.rng.uniform(0.8, 1.2))
+        time.sleep(2.0)
+        self.cli_status()
+        self.final_status = self.box.status()
+        self.stop_evt.set()
+        self.box.stop()
+        time.sleep(0.5)
+        self.wire.stop()
+        if self.tmpfs:
+            subprocess.run(["umount", str(self.box.incidents)], capture_output=True)
+
+    # ---- judging -------------------------------------------------------------------------------
+    def analyse(self) -> dict:
+        hb = sorted(((e["t"], e["status"], e.get("lost", 0)) for e in self.wire.events("mav")
+                     if e.get("ev") == "hb"))
+        can = sorted(((e["t"], e["stop"], e["state"], e.get("lost", 0))
+                      for e in self.wire.events("can") if e.get("ev") == "state"))
+
+        def first_stop(seq, is_stop, t_from, t_to):
+            for x in seq:
+                if t_from <= x[0] <= t_to and is_stop(x):
+                    return x[0]
+            return None
+
+        def state_at(seq, t):
+            last = None
+            for x in seq:
+                if x[0] > t:
+                    break
+                last = x
+            return last
+
+        out_faults, lat, can_lat, fails = [], [], [], []
+        false_clears = 0
+        for f in self.faults:
+            g = {k: (round(v - self.t0, 3) if isinstance(v, float) and k.startswith("t_") or
+                     k in ("recovered_at", "obstacle_at") and isinstance(v, float) else v)
+                 for k, v in f.items()}
+            if "t_detect" not in f:
+                out_faults.append(g)
+                continue
+            td, tr = f["t_detect"], f["t_removed"]
+            horizon = max(tr, td) + 5.0
+            ts = first_stop(hb, lambda x: x[1] == MAV_STOP, f["t_inject"], horizon)
+            tc = first_stop(can, lambda x: x[1], f["t_inject"], horizon)
+            if ts is not None:
+                g["stop_cycles_mav"] = max(0, math.ceil(round((ts - td) / PERIOD_S, 6)))
+            if tc is not None:
+                g["stop_cycles_can"] = max(0, math.ceil(round((tc - td) / PERIOD_S, 6)))
+            fc = 0
+            if f["expect"] == "stop":
+                w0, w1 = td + 2 * PERIOD_S, tr
+                if w1 > w0:
+                    s0 = state_at(hb, w0)
+                    fc += int(s0 is None or s0[1] != MAV_STOP)
+                    fc += sum(1 for x in hb if w0 < x[0] <= w1 and x[1] != MAV_STOP)
+                    c0 = state_at(can, w0)
+                    fc += int(c0 is not None and not c0[1])
+                    fc += sum(1 for x in can if w0 < x[0] <= w1 and not x[1])
+                g["false_clears"] = fc
+                false_clears += fc
+                if ts is None:
+                    fails.append(f"{f['kind']} at {td - self.t0:.1f} s: no STOP heard")
+                else:
+                    lat.append(g["stop_cycles_mav"])
+                if tc is not None:
+                    can_lat.append(g["stop_cycles_can"])
+            elif f["expect"] == "vehicle failsafe":
+                g["vehicle_failsafe_s"] = round(tc - td, 3) if tc is not None else None
+            if f.get("recovered_at"):
+                g["recovery_s"] = round(f["recovered_at"] - tr, 2)
+            out_faults.append(g)
+        # messages lost on the wire (restarts excluded: a new process numbers from 0)
+        starts = self.box.starts
+
+        def lost_between(seq, idx):
+            tot = 0
+            for a, b in zip(seq, seq[1:]):
+                if any(a[0] < s <= b[0] + 1.0 for s in starts):
+                    continue
+                tot += max(0, b[idx] - a[idx])
+            return tot
+        mav_lost = lost_between(hb, 2)
+        can_lost = lost_between(can, 3)
+        # RSS and fds of each daemon process after a warm-up
+        segs = {}
+        for s in self.samples:
+            if "rss_mb" in s:
+                segs.setdefault(s["inc"], []).append(s)
+        best = None
+        fd_growth = 0
+        for inc, ss in segs.items():
+            t_start = starts[inc - 1] if inc - 1 < len(starts) else ss[0]["t"]
+            warm = [s for s in ss if s["t"] - t_start >= 60.0] or ss[len(ss) // 3:]
+            if len(warm) < 5:
+                continue
+            fd_growth = max(fd_growth, warm[-1]["fds"] - warm[0]["fds"])
+            if best is None or warm[-1]["t"] - warm[0]["t"] > best[-1]["t"] - best[0]["t"]:
+                best = warm
+        slope = None
+        if best:
+            xs = [(s["t"] - best[0]["t"]) / 3600 for s in best]
+            ys = [s["rss_mb"] for s in best]
+            mx, my = sum(xs) / len(xs), sum(ys) / len(ys)
+            den = sum((x - mx) ** 2 for x in xs)
+            slope = sum((x - mx) * (y - my) for x, y in zip(xs, ys)) / den if den else 0.0
+        cpu_t = cpu_wall = 0.0          # the daemon's CPU time / wall time, over its processes
+        for inc, ss in segs.items():
+            c = [x for x in ss if "cpu_s" in x]
+            if len(c) >= 2:
+                cpu_t += c[-1]["cpu_s"] - c[0]["cpu_s"]
+                cpu_wall += c[-1]["t"] - c[0]["t"]
+        cpu_share = round(cpu_t / cpu_wall, 3) if cpu_wall else None
+        overruns = 0
+        for inc, ss in segs.items():
+            ov = [s["overruns"] for s in ss if s.get("overruns") is not None]
+            overruns += max(ov) if ov else 0
+        by_kind = {}
+        for g in out_faults:
+            k = by_kind.setdefault(g["kind"], {"n": 0, "stop_cycles_mav": [], "recovery_s": [],
+                                               "false_clears": 0})
+            k["n"] += 1
+            if "stop_cycles_mav" in g:
+                k["stop_cycles_mav"].append(g["stop_cycles_mav"])
+            if "recovery_s" in g:
+                k["recovery_s"].append(g["recovery_s"])
+            k["false_clears"] += g.get("false_clears", 0)
+        for k in by_kind.values():
+            c, r = k.pop("stop_cycles_mav"), k.pop("recovery_s")
+            k["max_stop_cycles"] = max(c) if c else None
+            k["max_recovery_s"] = max(r) if r else None
+        return {
+            "minutes": self.minutes, "seed": self.seed, "interval_s": self.interval,
+            "faults_injected": len(self.faults),
+            "false_clears": false_clears,
+            "max_stop_latency_cycles": max(lat) if lat else None,
+            "max_stop_latency_cycles_can": max(can_lat) if can_lat else None,
+            "stops_within_2_cycles": sum(1 for x in lat if x <= 2),
+            "stops_measured": len(lat),
+            "faults_without_stop": fails,
+            "recoveries": sum(1 for f in self.faults if f.get("recovered_at")),
+            "restarts": len(starts) - 1,
+            "rss_slope_mb_per_h": None if slope is None else round(slope, 3),
+            "rss_mb_last": round(self.samples[-1].get("rss_mb", 0.0), 1) if self.samples else None,
+            "fd_growth": fd_growth,
+            "deadline_misses": overruns,
+            "daemon_cpu_share": cpu_share,
+            "messages_lost": {"mavlink_seq_gaps": mav_lost, "can_alive_counter_gaps": can_lost},
+            "mav_heartbeats_heard": len(hb),
+            "by_kind": by_kind,
+            "status_cli": self.status_cli,
+            "tool_errors": [g for g in out_faults if "error" in g],
+            "host_load_1min": {"min": min(self.load, default=None),
+                               "max": max(self.load, default=None),
+                               "mean": round(sum(self.load) / len(self.load), 2)
+                               if self.load else None},
+            "notes": self.notes,
+            "not_at_the_wire": ["GigE stereo (Aravis fake cameras)", "RGB-D (fakenect)",
+                                "clock steps (the box reads only the monotonic clock; a wall-"
+                                "clock step is not injected here)"],
+            "faults": out_faults,
+        }
+
+    # ---- plots ---------------------------------------------------------------------------------
+    def plots(self, summary):
+        import cv2
+        import numpy as np
+        W, H, M = 1200, 360, 60
+        t_end = max([s["t"] for s in self.samples] + [self.t0 + 1]) - self.t0
+
+        def X(t):
+            return int(M + (W - 2 * M) * t / max(t_end, 1e-6))
+
+        def axes(img, title, ylab):
+            cv2.rectangle(img, (M, 30), (W - M, H - 40), (0, 0, 0), 1)
+            cv2.putText(img, title, (M, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (0, 0, 0), 1)
+            cv2.putText(img, ylab, (5, H // 2), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1)
+            for i in range(6):
+                t = t_end * i / 5
+                cv2.putText(img, f"{t:.0f}s", (X(t) - 10, H - 22), cv2.FONT_HERSHEY_SIMPLEX,
+                            0.4, (0, 0, 0), 1)
+            for s in self.box.starts[1:]:
+                cv2.line(img, (X(s - self.t0), 30), (X(s - self.t0), H - 40), (0, 0, 255), 1)
+
+        def series(img, pts, lo, hi, colour, label, row):
+            if not pts:
+                return
+            hi = hi if hi > lo else lo + 1
+            p = np.array([[X(t), int(H - 40 - (H - 70) * (v - lo) / (hi - lo))] for t, v in pts],
+                         np.int32)
+            cv2.polylines(img, [p], False, colour, 1)
+            cv2.putText(img, f"{label} ({lo:.1f}..{hi:.1f})", (W - 330, 45 + 16 * row),
+                        cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, 1)
+
+        img = np.full((H, W, 3), 255, np.uint8)
+        axes(img, f"daemon RSS and open fds (red lines: restarts) - seed {self.seed}", "")
+        rss = [(s["t"] - self.t0, s["rss_mb"]) for s in self.samples if "rss_mb" in s]
+        fds = [(s["t"] - self.t0, s["fds"]) for s in self.samples if "fds" in s]
+        if rss:
+            series(img, rss, min(v for _, v in rss), max(v for _, v in rss), (200, 0, 0),
+                   "RSS MB", 0)
+        if fds:
+            series(img, fds, min(v for _, v in fds), max(v for _, v in fds), (0, 140, 0),
+                   "open fds", 1)
+        cv2.imwrite(str(self.out / "rss_fds.png"), img)
+
+        img = np.full((H, W, 3), 255, np.uint8)
+        axes(img, "state the MAVLink vehicle heard (top) and the faults (bars)", "")
+        hb = sorted((e["t"] - self.t0, e["status"]) for e in self.wire.events("mav")
+                    if e.get("ev") == "hb")
+        colour = {4: (0, 170, 0), 5: (0, 200, 255), 6: (0, 0, 220)}
+        for (t, s), nxt in zip(hb, hb[1:] + [(t_end, None)]):
+            cv2.rectangle(img, (X(t), 40), (max(X(t) + 1, X(nxt[0])), 90), colour.get(s, (128,) * 3),
+                          -1)
+        kinds = sorted({f["kind"] for f in self.faults})
+        for f in self.faults:
+            if "t_detect" not in f:
+                continue
+            row = kinds.index(f["kind"])
+            y = 100 + int((H - 150) * row / max(1, len(kinds)))
+            cv2.rectangle(img, (X(f["t_inject"] - self.t0), y),
+                          (max(X(f["t_inject"] - self.t0) + 2, X(f["t_removed"] - self.t0)),
+                           y + 6), (90, 90, 90), -1)
+        for i, k in enumerate(kinds):
+            y = 100 + int((H - 150) * i / max(1, len(kinds)))
+            cv2.putText(img, k, (W - M + 2, y + 7), cv2.FONT_HERSHEY_SIMPLEX, 0.3, (0, 0, 0), 1)
+        cv2.imwrite(str(self.out / "timeline.png"), img)
+
+        img = np.full((H, W, 3), 255, np.uint8)
+        cv2.putText(img, "STOP latency per fault kind (cycles from detectable; max), line = 2",
+                    (M, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (0, 0, 0), 1)
+        bk = summary["by_kind"]
+        names = sorted(bk)
+        top = max([2] + [v["max_stop_cycles"] or 0 for v in bk.values()]) + 1
+        bw = (W - 2 * M) // max(1, len(names))
+        y2 = int(H - 80 - (H - 120) * 2 / top)
+        for i, k in enumerate(names):
+            v = bk[k]["max_stop_cycles"]
+            x = M + i * bw
+            if v is not None:
+                y = int(H - 80 - (H - 120) * v / top)
+                cv2.rectangle(img, (x + 4, y), (x + bw - 4, H - 80),
+                              (0, 0, 220) if v > 2 else (0, 150, 0), -1)
+                cv2.putText(img, str(v), (x + 6, y - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
+                            (0, 0, 0), 1)
+            cv2.putText(img, k[:12], (x + 2, H - 60 + 12 * (i % 3)), cv2.FONT_HERSHEY_SIMPLEX,
+                        0.33, (0, 0, 0), 1)
+        cv2.line(img, (M, y2), (W - M, y2), (0, 0, 0), 1)
+        cv2.imwrite(str(self.out / "latency.png"), img)
+
+
+# ---- entry -------------------------------------------------------------------------------------
+def outside(a, argv) -> int:
+    if os.geteuid() != 0:
+        die("the soak needs root (it makes a network namespace and a tmpfs)")
+    for tool in ("ip", "socat"):
+        if shutil.which(tool) is None:
+            die(f"{tool} is not installed (tools/ci_system_deps.sh and tools/hw_system_deps.sh "
+                f"install it)")
+    ns = f"fgsoak{os.getpid()}"
+    r = subprocess.run(["ip", "netns", "add", ns], capture_output=True, text=True)
+    if r.returncode:
+        die(f"cannot make a network namespace: {r.stderr.strip()}")
+    try:
+        for cmd in (["link", "set", "lo", "up"], ["link", "set", "lo", "multicast", "on"],
+                    ["route", "add", "224.0.0.0/4", "dev", "lo"]):
+            subprocess.run(["ip", "netns", "exec", ns, "ip", *cmd], check=True)
+        return subprocess.run(["ip", "netns", "exec", ns, PY, str(Path(__file__).resolve()),
+                               *argv, "--inside"], cwd=str(ROOT)).returncode
+    finally:
+        out = subprocess.run(["ip", "netns", "pids", ns], capture_output=True, text=True).stdout
+        for pid in out.split():
+            try:
+                os.kill(int(pid), signal.SIGKILL)
+            except OSError:
+                pass
+        subprocess.run(["ip", "netns", "del", ns], capture_output=True)
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    ap = argparse.ArgumentParser(prog="tools/soak.py", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--minutes", type=float, required=True)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", required=True, help="directory for the summary, events and plots")
+    ap.add_argument("--json", action="store_true", help="print the summary as JSON")
+    ap.add_argument("--interval", type=float, default=20.0, help="seconds between faults")
+    ap.add_argument("--inside", action="store_true", help=argparse.SUPPRESS)
+    a = ap.parse_args(argv)
+    if a.minutes <= 0 or a.interval <= 0:
+        die("--minutes and --interval must be > 0")
+    if not a.inside:
+        return outside(a, [x for x in argv if x != "--inside"])
+    out = Path(a.out).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    soak = Soak(out, a.minutes, a.seed, a.interval)
+    try:
+        soak.run()
+    finally:
+        soak.stop_evt.set()
+        soak.box.stop()
+        soak.wire.stop()
+    summary = soak.analyse()
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    (out / "events.json").write_text(json.dumps({
+        "t0": soak.t0, "starts": [s - soak.t0 for s in soak.box.starts],
+        "samples": [{k: (round(v - soak.t0, 2) if k == "t" else v) for k, v in s.items()}
+                    for s in soak.samples],
+        "mav": [e for e in soak.wire.events("mav") if e.get("ev") in ("hb", "set_mode")],
+        "can": [e for e in soak.wire.events("can") if e.get("ev") == "state"]}))
+    try:
+        soak.plots(summary)
+    except Exception as exc:        # plots are a by-product; the figures are in the JSON
+        summary["notes"].append(f"plots failed: {type(exc).__name__}: {exc}")
+    brief = {k: v for k, v in summary.items() if k != "faults"}
+    if a.json:
+        print(json.dumps(brief, indent=1))
+    else:
+        for k in ("faults_injected", "false_clears", "max_stop_latency_cycles", "recoveries",
+                  "restarts", "rss_slope_mb_per_h", "fd_growth", "deadline_misses"):
+            print(f"{k:26s} {summary[k]}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
