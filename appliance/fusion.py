@@ -62,7 +62,10 @@ class GridFusion:
         a = np.array([[cos, -sin], [sin, cos]])
         # affine on (i, j): new_ij = A @ ij + b, in units of cells
         b_metric = a @ (np.array([ox + 0.5 * s, oy + 0.5 * s]) - np.array([tx, ty]))
-        b = (b_metric - np.array([ox + 0.5 * s, oy + 0.5 * s])) / s
+        # + 1e-3 cell: OpenCV rounds a sample point exactly between two cells to the even one,
+        # so a shift of exactly half a cell (0.5 m/s, 0.1 m cells, 10 Hz) dropped every odd
+        # row of evidence (found by tests/test_properties.py); off the tie, all move alike
+        b = (b_metric - np.array([ox + 0.5 * s, oy + 0.5 * s])) / s + 1e-3
         # cv2 works on (col=j, row=i): swap axes
         m = np.array([[a[1, 1], a[1, 0], b[1]], [a[0, 1], a[0, 0], b[0]]], np.float64)
         self.evidence = cv2.warpAffine(self.evidence, m, (self.ny, self.nx),
@@ -75,7 +78,9 @@ class GridFusion:
         """Integrate this cycle's points; return the occupied cell centres (M, 2)."""
         dt = 0.0 if self._last_ns is None else (stamp_ns - self._last_ns) / 1e9
         self._last_ns = stamp_ns
-        if dt > 2.0:             # a gap (restart, stale sensors): old evidence means nothing
+        if dt > 2.0 or dt < 0:   # a gap (restart, stale sensors) or a clock step back: old
+            # evidence means nothing (a step back kept evidence "from the future": found by
+            # tests/test_properties.py; the tracker drops its tracks then too)
             self.evidence[:] = 0
         else:
             self._ego_motion(dt, vehicle)

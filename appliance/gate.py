@@ -34,7 +34,9 @@ class SafetyGate:
         self.state = GateState.STOP
         self.reason = "booting: no cycle has run yet"
         self._seq = 0
-        self._calm_since_ns: int | None = None     # since when the wanted state was >= current
+        # since when every cycle, watched without a break, wanted at least SLOW (1) / CLEAR (2)
+        self._since: dict[int, int | None] = {1: None, 2: None}
+        self._last_ns: int | None = None
         self.history: deque[StopEvent] = deque(maxlen=50)
         self.history.append(StopEvent(0, self.reason))
         self.transitions = 0
@@ -45,25 +47,42 @@ class SafetyGate:
     def decide(self, now_ns: int, faults: list[str], verdict: ZoneVerdict | None,
                source_stamp_ns: int | None = None) -> GateOutput:
         wanted, reason, cause = self._wanted(faults, verdict)
-        if _RANK[wanted] < _RANK[self.state] or wanted is GateState.STOP:
+        w = _RANK[wanted]
+        hold = self.cfg.hold_off_s
+        # a clock step back, or a gap longer than the hold-off, is a break: the box was not
+        # watching (found by tests/test_properties.py: one calm cycle and an hour's jump
+        # counted as an hour held)
+        watched = self._last_ns is None or 0 <= now_ns - self._last_ns <= hold * 1e9 + 1
+        self._last_ns = now_ns
+        for lvl in (1, 2):
+            if w < lvl:
+                self._since[lvl] = None
+            elif self._since[lvl] is None or not watched:
+                self._since[lvl] = now_ns
+        if w < _RANK[self.state] or wanted is GateState.STOP:
             # tightening (or staying in STOP): at once
-            self._calm_since_ns = None
             self._set(wanted, reason, now_ns)
             self.cause = cause
-        elif _RANK[wanted] > _RANK[self.state]:
-            # loosening: only after the hold-off, with no break
-            if self._calm_since_ns is None:
-                self._calm_since_ns = now_ns
-            held = (now_ns - self._calm_since_ns) / 1e9
-            if held + 1e-9 >= self.cfg.hold_off_s:
+        elif w > _RANK[self.state]:
+            # loosening: to the best level every cycle of the hold-off wanted (STOP, then
+            # something in the slow zone, then one clear cycle is SLOW, not CLEAR)
+            held = {lvl: (now_ns - t) / 1e9 for lvl, t in self._since.items() if t is not None}
+            reached = max((lvl for lvl in (1, 2)
+                           if lvl <= w and held.get(lvl, -1.0) + 1e-9 >= hold), default=0)
+            if reached == w:
                 self._set(wanted, reason, now_ns)
-                self._calm_since_ns = None
                 self.cause = cause
+            elif reached > _RANK[self.state]:
+                was = self._last_cause
+                self._set(GateState.SLOW, f"holding SLOW: clear for {held.get(2, 0.0):.1f} of "
+                                          f"{hold:.1f} s (was: {was})", now_ns)
+                self._last_cause = was
+                self.cause = "obstacle"
             else:
-                self.reason = (f"holding {self.state.value}: clear for {held:.1f} of "
-                               f"{self.cfg.hold_off_s:.1f} s (was: {self._last_cause})")
+                self.reason = (f"holding {self.state.value}: clear for "
+                               f"{held.get(_RANK[self.state] + 1, 0.0):.1f} of {hold:.1f} s "
+                               f"(was: {self._last_cause})")
         else:
-            self._calm_since_ns = None
             self.reason = reason
             self.cause = cause
         self._seq = (self._seq + 1) & 0xFFFF

@@ -135,6 +135,8 @@ def cluster_points(points: dict[str, tuple[np.ndarray, tuple[str, ...]]], grid: 
         iy = np.floor((p[:, 1] - grid.y_min_m) / cell).astype(np.int64)
         ok = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
         key = np.unique(ix[ok] * ny + iy[ok])
+        if not len(key):        # every point off the grid (found by tests/test_properties.py:
+            continue            # the empty labelling below raised ValueError)
         keys.append(key)
         owners.append(np.full(len(key), k, np.int64))
     if not keys:
