@@ -168,8 +168,10 @@ class Daemon:
         doc["mode"] = self.mode
         doc["config"] = self.cfg.source
         n = self.notifier
+        from appliance.service import logging_backend
         doc["systemd"] = {"notify": n.enabled, "watchdog_s": n.watchdog_s,
-                          "last_messages": list(n.sent[-5:]), "errors": n.errors}
+                          "last_messages": list(n.sent[-5:]), "errors": n.errors,
+                          "backend": getattr(n, "backend", None), "logging": logging_backend()}
         hub = self.shared.get("sim_hub")
         if hub is not None:
             doc["sim"] = {"scene": self.cfg.sim.scene, **hub.field.stats()}

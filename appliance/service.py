@@ -1,11 +1,14 @@
-"""systemd integration: the sd_notify protocol and journal-friendly logging.
+"""systemd integration: the sd_notify protocol and journal logging.
 
-We speak the notify protocol directly (one datagram per message on $NOTIFY_SOCKET, as
-sd_notify(3) documents) instead of through systemd-python: the protocol is a few lines, and
-systemd-python needs libsystemd-dev and a compiler on the box at install time. Logging goes to
-stderr; under systemd ($JOURNAL_STREAM set) each line carries a syslog priority prefix
-("<3>…"), which journald turns into the entry's priority — the same result as
-systemd.journal.JournalHandler without the dependency.
+With systemd-python installed (the ``systemd`` extra; Debian's python3-systemd, or the pip
+package where libsystemd's headers exist) the box uses it: ``systemd.daemon.notify`` for the
+notify protocol and ``systemd.journal.JournalHandler`` for logging, which gives every entry its
+priority, logger name, source file/line and thread as journal fields. Without it, or when a
+caller gives its own environment (tests), the fallback speaks the protocols directly: one
+datagram per message on $NOTIFY_SOCKET, as sd_notify(3) documents, and log lines on stderr with
+a syslog priority prefix ("<3>...") that journald turns into the entry's priority.
+``Notifier.backend`` and ``logging_backend()`` say which is in use (``fieldguard status`` shows
+it under "systemd").
 
 - READY=1 once the devices are up and the gate has run a cycle;
 - WATCHDOG=1 only after a healthy cycle (on time, sent on every link), at most every quarter
@@ -22,8 +25,32 @@ import sys
 import time
 
 
+JOURNAL_SOCKET = "/run/systemd/journal/socket"
+
+
+def _systemd_daemon():
+    try:
+        from systemd import daemon
+    except ImportError:
+        return None
+    return daemon
+
+
+def _systemd_journal():
+    try:
+        from systemd import journal
+    except ImportError:
+        return None
+    return journal
+
+
 class Notifier:
-    def __init__(self, env: dict | None = None):
+    """sd_notify. ``backend``: "systemd" (systemd.daemon.notify, when importable and the
+    environment is the process's own, which is the one libsystemd reads), "socket" (the
+    protocol spoken here), or None (not under systemd: nothing is sent)."""
+
+    def __init__(self, env: dict | None = None, use_library: bool = True):
+        own_env = env is None
         env = os.environ if env is None else env
         path = env.get("NOTIFY_SOCKET", "")
         self.address = None
@@ -39,6 +66,8 @@ class Notifier:
         self._last_status = None
         self.sent: list[str] = []         # what went out (for status and tests)
         self.errors = 0
+        self._lib = _systemd_daemon() if (use_library and own_env) else None
+        self.backend = None if self.address is None else ("systemd" if self._lib else "socket")
 
     @property
     def enabled(self) -> bool:
@@ -47,6 +76,17 @@ class Notifier:
     def notify(self, text: str) -> bool:
         if self.address is None:
             return False
+        if self._lib is not None:
+            try:
+                ok = bool(self._lib.notify(text))
+            except (OSError, ValueError):
+                ok = False
+            if not ok:
+                self.errors += 1
+                return False
+            self.sent.append(text.split("\n", 1)[0])
+            del self.sent[:-20]
+            return True
         try:
             if self._sock is None:
                 self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
@@ -94,15 +134,42 @@ class _JournalFormatter(logging.Formatter):
         return f"<{prio}>" + super().format(record)
 
 
-def setup_logging(verbose: bool = False, env: dict | None = None) -> None:
+_logging_backend = "stderr"
+
+
+def logging_backend() -> str:
+    """How log records leave the process: "journal" (systemd.journal), "stderr-journal"
+    (priority-prefixed lines on a stderr journald reads) or "stderr"."""
+    return _logging_backend
+
+
+def setup_logging(verbose: bool = False, env: dict | None = None, use_library: bool = True,
+                  journal_socket: str = JOURNAL_SOCKET) -> None:
+    global _logging_backend
     env = os.environ if env is None else env
     handler = logging.StreamHandler(sys.stderr)
-    if env.get("JOURNAL_STREAM"):
+    journal = _systemd_journal() if use_library else None
+    if env.get("JOURNAL_STREAM") and journal is not None and _is_socket(journal_socket):
+        # native journal entries: priority, logger, file/line, thread as fields
+        handler = journal.JournalHandler(SYSLOG_IDENTIFIER="fieldguard")
+        handler.setFormatter(logging.Formatter("%(name)s: %(message)s"))
+        _logging_backend = "journal"
+    elif env.get("JOURNAL_STREAM"):
         # journald stamps the time and the unit itself
         handler.setFormatter(_JournalFormatter("%(name)s: %(message)s"))
+        _logging_backend = "stderr-journal"
     else:
+        _logging_backend = "stderr"
         handler.setFormatter(logging.Formatter(
             "%(asctime)s %(levelname)s %(name)s: %(message)s"))
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(logging.DEBUG if verbose else logging.INFO)
+
+
+def _is_socket(path: str) -> bool:
+    import stat
+    try:
+        return stat.S_ISSOCK(os.stat(path).st_mode)
+    except OSError:
+        return False

@@ -9,6 +9,8 @@ import threading
 import time
 from pathlib import Path
 
+import pytest
+
 from appliance.config import default_config
 from appliance.daemon import Daemon, sim_config
 from appliance.perception import register_pipeline
@@ -79,8 +81,11 @@ def test_daemon_under_systemd_protocol(tmp_path):
     assert statuses[0].startswith("STATUS=STOP")          # boots in STOP
     assert any(s.startswith("STATUS=CLEAR") or s.startswith("STATUS=SLOW") for s in statuses)
     assert lst.lines("STOPPING=1")
-    # journald priority prefixes on stderr
-    assert any(line.startswith("<6>fieldguard") for line in err.splitlines()), err[:500]
+    # journald priority prefixes on stderr (where no journald listens: with one, the records
+    # go to it through systemd.journal instead, test_journal_handler_sends_native_entries)
+    from appliance.service import JOURNAL_SOCKET, _is_socket, _systemd_journal
+    if not (_systemd_journal() and _is_socket(JOURNAL_SOCKET)):
+        assert any(line.startswith("<6>fieldguard") for line in err.splitlines()), err[:500]
 
 
 def test_hung_loop_stops_the_watchdog_pings(tmp_path):
@@ -143,4 +148,107 @@ def test_journal_logging_prefix(capsys):
     setup_logging(False, {"JOURNAL_STREAM": "1:2"})
     logging.getLogger("fieldguard.x").error("boom")
     assert "<3>fieldguard.x: boom" in capsys.readouterr().err
+    setup_logging(False, {})
+
+
+# ---- systemd-python (the library path) and the fallback, both ----------------------------
+def test_notify_through_systemd_python_when_it_is_installed(tmp_path, monkeypatch):
+    from appliance import service
+    if service._systemd_daemon() is None:
+        from tests.conftest import missing_tool
+        missing_tool("systemd-python is not installed (pip install '.[systemd]'; needs "
+                     "libsystemd-dev, tools/hw_system_deps.sh)")
+    lst = Listener(tmp_path / "lib.sock")
+    monkeypatch.setenv("NOTIFY_SOCKET", str(tmp_path / "lib.sock"))
+    monkeypatch.setenv("WATCHDOG_USEC", "400000")
+    monkeypatch.delenv("WATCHDOG_PID", raising=False)
+    try:
+        n = Notifier()
+        assert n.backend == "systemd"
+        n.ready("STOP: booting")
+        n.status("CLEAR: zone clear")
+        n.healthy_cycle()
+        n.stopping()
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and not lst.lines("STOPPING=1"):
+            time.sleep(0.02)
+        assert lst.lines("READY=1") and lst.lines("MAINPID=")
+        assert [m for _, m in lst.lines("STATUS=")] == ["STATUS=STOP: booting",
+                                                         "STATUS=CLEAR: zone clear",
+                                                         "STATUS=stopping"]
+        assert lst.lines("WATCHDOG=1") and lst.lines("STOPPING=1")
+        assert n.errors == 0 and n.sent[0] == "READY=1"
+    finally:
+        lst.close()
+    # a socket nobody listens on: counted, never raised
+    monkeypatch.setenv("NOTIFY_SOCKET", str(tmp_path / "nobody.sock"))
+    n2 = Notifier()
+    assert not n2.notify("READY=1") and n2.errors == 1
+
+
+def test_notify_fallback_without_systemd_python(tmp_path, monkeypatch):
+    from appliance import service
+    monkeypatch.setattr(service, "_systemd_daemon", lambda: None)      # as if not installed
+    lst = Listener(tmp_path / "fb.sock")
+    monkeypatch.setenv("NOTIFY_SOCKET", str(tmp_path / "fb.sock"))
+    try:
+        n = Notifier()
+        assert n.backend == "socket"
+        n.ready("STOP: booting")
+        n.stopping()
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and not lst.lines("STOPPING=1"):
+            time.sleep(0.02)
+        assert lst.lines("READY=1") and lst.lines("STOPPING=1")
+    finally:
+        lst.close()
+    assert Notifier({}).backend is None                                 # not under systemd
+
+
+def test_journal_handler_sends_native_entries(tmp_path):
+    """systemd.journal's handler, to a journald peer: the native protocol's datagrams on the
+    journal socket, with the priority and the logger as fields."""
+    import logging
+
+    from appliance import service
+    journal = service._systemd_journal()
+    if journal is None:
+        from tests.conftest import missing_tool
+        missing_tool("systemd-python is not installed (pip install '.[systemd]')")
+    path = Path(service.JOURNAL_SOCKET)
+    if service._is_socket(str(path)):
+        pytest.skip("a journald is running here; its entries are read with journalctl")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        peer = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        peer.bind(str(path))
+    except OSError as exc:
+        pytest.skip(f"cannot stand in for journald at {path}: {exc}")
+    peer.settimeout(5)
+    try:
+        setup_logging(False, {"JOURNAL_STREAM": "8:1"})
+        assert service.logging_backend() == "journal"
+        logging.getLogger("fieldguard.test").error("lamp overtemperature")
+        fields = {}
+        for line in peer.recv(65536).decode(errors="replace").split("\n"):
+            k, _, v = line.partition("=")
+            fields[k] = v
+    finally:
+        setup_logging(False, {})
+        peer.close()
+        path.unlink(missing_ok=True)
+    assert fields["MESSAGE"] == "fieldguard.test: lamp overtemperature"
+    assert fields["PRIORITY"] == "3" and fields["SYSLOG_IDENTIFIER"] == "fieldguard"
+    assert fields["LOGGER"] == "fieldguard.test" and fields["CODE_FILE"].endswith(".py")
+    assert service.logging_backend() == "stderr"
+
+
+def test_journal_fallback_without_systemd_python(capsys):
+    import logging
+
+    from appliance import service
+    setup_logging(False, {"JOURNAL_STREAM": "1:2"}, use_library=False)
+    assert service.logging_backend() == "stderr-journal"
+    logging.getLogger("fieldguard.x").warning("late")
+    assert "<4>fieldguard.x: late" in capsys.readouterr().err
     setup_logging(False, {})
