@@ -155,8 +155,17 @@ def run_drive(spec: dict, report=None) -> dict:
     return out
 
 
-def _ray_drive(spec: dict, tracker=None) -> dict:
-    """The Ray task: a drive, its progress sent to the tracker actor."""
+def _ray_drive(spec: dict, tracker=None, niceness: int | None = None) -> dict:
+    """The Ray task: a drive, its progress sent to the tracker actor. Ray starts its workers
+    at a lower priority than the driver (nice + 15 here); the drive's thread, and the threads
+    it starts, go back to the campaign's own niceness, so ``nice -n 10 fieldguard campaign``
+    means the same for 1 worker as for N."""
+    if niceness is not None:
+        try:
+            if os.getpriority(os.PRIO_PROCESS, 0) > niceness:
+                os.setpriority(os.PRIO_PROCESS, 0, niceness)
+        except (OSError, AttributeError):
+            pass                         # not allowed to raise it back: run as Ray set it
     rep = None
     if tracker is not None:
         key = drive_id(spec["kind"], spec["seed"])
@@ -521,11 +530,13 @@ class Campaign:
                 ray.init(address=self.address, **kw)
             else:
                 ray.init(num_cpus=self.workers, object_store_memory=200 * 2**20, **kw)
+            sigterm_interrupts()
         try:
             workers = int(ray.cluster_resources().get("CPU", self.workers))
             tracker = ray.remote(num_cpus=0)(_Tracker).remote()
             task = ray.remote(num_cpus=1, max_retries=0)(_ray_drive)
-            pending = {task.remote(sp, tracker): sp for sp in todo}
+            nice = os.getpriority(os.PRIO_PROCESS, 0) if hasattr(os, "getpriority") else None
+            pending = {task.remote(sp, tracker, nice): sp for sp in todo}
             while pending:
                 ready, _ = ray.wait(list(pending), num_returns=1, timeout=2.0)
                 for ref in ready:
@@ -580,15 +591,24 @@ def register(sub) -> None:
     c.set_defaults(func=cmd_campaign)
 
 
-def cmd_campaign(a) -> int:
-    import logging
-    if not getattr(a, "verbose", False):       # each drive's daemon start / stop lines
-        logging.getLogger("fieldguard").setLevel(logging.WARNING)
+def sigterm_interrupts() -> None:
+    """SIGTERM stops a campaign as ^C does (the finished drives' summary is written); called
+    again after ray.init, which installs its own handler."""
     import signal
+    import threading
+    if threading.current_thread() is not threading.main_thread():
+        return
 
     def _term(*_):
         raise KeyboardInterrupt
     signal.signal(signal.SIGTERM, _term)
+
+
+def cmd_campaign(a) -> int:
+    import logging
+    if not getattr(a, "verbose", False):       # each drive's daemon start / stop lines
+        logging.getLogger("fieldguard").setLevel(logging.WARNING)
+    sigterm_interrupts()
     camp = Campaign(a.scene, a.seeds, a.minutes, a.out, workers=a.workers, address=a.address,
                     config_file=a.config, stereo_scale=a.stereo_scale,
                     report=not a.no_report,
