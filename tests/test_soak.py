@@ -22,7 +22,7 @@ def test_two_minute_soak_no_false_clear_stop_within_two_cycles_no_fd_growth(tmp_
         missing_tool("the soak needs root (a network namespace and a tmpfs)")
     for tool in ("ip", "socat"):
         if shutil.which(tool) is None:
-            missing_tool(f"{tool} is not installed (tools/ci_system_deps.sh installs it)")
+            missing_tool(f"{tool} is not installed (tools/hw_system_deps.sh installs it)")
     if shutil.which("mavproxy.py", path=str(Path(sys.executable).parent)) is None and \
             shutil.which("mavproxy.py") is None:
         missing_tool("MAVProxy not installed (pip install --no-deps MAVProxy)")

@@ -258,7 +258,7 @@ timeout_s = {CAN_TIMEOUT}
     def status(self):
         from appliance.status import read_status
         try:
-            return read_status(str(self.sock), timeout_s=0.5)
+            return read_status(str(self.sock), timeout_s=3.0)
         except Exception:
             return None
 
@@ -518,9 +518,10 @@ class Soak:
     def run(self):
         self.t0 = time.monotonic()
         self.setup()
-        end = self.t0 + self.minutes * 60
         if not self.wait_clear(90):
             self.notes.append("the box never reached CLEAR after start-up")
+        self.t_faults = time.monotonic()         # --minutes of faults from here (set-up apart)
+        end = self.t_faults + self.minutes * 60
         self.cli_status()
         self.wire.mav.cmd("mode 10")            # the operator starts the mission
         kinds = [k for k in FAULTS if self.tmpfs or k != "disk_full"]
@@ -679,6 +680,7 @@ class Soak:
             k["max_recovery_s"] = max(r) if r else None
         return {
             "minutes": self.minutes, "seed": self.seed, "interval_s": self.interval,
+            "setup_s": round(getattr(self, "t_faults", self.t0) - self.t0, 1),
             "faults_injected": len(self.faults),
             "false_clears": false_clears,
             "max_stop_latency_cycles": max(lat) if lat else None,

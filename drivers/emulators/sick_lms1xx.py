@@ -53,7 +53,7 @@ import numpy as np
 
 from hal.types import LaserGeometry
 
-from . import serve_commands
+from . import FaultCommands, serve_commands
 
 
 # ---------------------------------------------------------------------------------------------
@@ -112,7 +112,7 @@ def sim_scans(scene: str = "stubble-day", frames: int = 20, seed: int = 0,
 
 
 # ---------------------------------------------------------------------------------------------
-class SickLms1xxEmulator:
+class SickLms1xxEmulator(FaultCommands):
     """A threaded CoLa-A TCP server. ``port=0`` picks a free port (see ``.port``)."""
 
     ident = "LMS1xx_FG_EMU"
@@ -197,12 +197,8 @@ class SickLms1xxEmulator:
     def put_post(self, x_m: float | None, width_m: float = 0.3) -> None:
         self._post = None if x_m is None else (float(x_m), float(width_m))
 
-    def command(self, line: str) -> bool:
-        """One stdin command (see the module doc). False on quit."""
-        w = line.split()
-        if not w:
-            return True
-        c = w[0]
+    def handle(self, c: str, w: list[str]) -> bool:
+        """One stdin command (see the module doc), ``w`` its words; False if unknown."""
         if c == "silent":
             self.silent = True
         elif c == "resume":
@@ -223,12 +219,8 @@ class SickLms1xxEmulator:
             self.put_post(float(w[1]), float(w[2]) if len(w) > 2 else 0.3)
         elif c == "clear":
             self.put_post(None)
-        elif c == "quit":
-            return False
         else:
-            self.log(event="error", message=f"unknown command {c!r}")
-            return True
-        self.log(event="ok", command=line.strip())
+            return False
         return True
 
     # ---- the scans ----------------------------------------------------------------------------

@@ -30,10 +30,10 @@ import time
 
 from drivers.strobe_serial import checksum, frame_line
 
-from . import serve_commands
+from . import FaultCommands, serve_commands
 
 
-class StrobeControllerEmulator:
+class StrobeControllerEmulator(FaultCommands):
     model, firmware = "FG-STROBE-EMU", "1.0"
 
     def __init__(self, fd: int, log=None):
@@ -144,11 +144,8 @@ class StrobeControllerEmulator:
                 time.sleep(0.005)
 
     # ---- faults -------------------------------------------------------------------------------
-    def command(self, line: str) -> bool:
-        w = line.split()
-        if not w:
-            return True
-        c = w[0]
+    def handle(self, c: str, w: list[str]) -> bool:
+        """One stdin command (see the module doc), ``w`` its words; False if unknown."""
         if c == "garbage":
             n = int(w[1]) if len(w) > 1 else 32
             junk = bytes(b for b in os.urandom(2 * n) if b != 0x0A)[:n]
@@ -176,12 +173,8 @@ class StrobeControllerEmulator:
             self.fault_code = int(w[1]) if len(w) > 1 else 1
             if self.fault_code:
                 self.answer(f"FAULT {self.fault_code} {' '.join(w[2:]) or 'fault'}")
-        elif c == "quit":
-            return False
         else:
-            self.log(event="error", message=f"unknown command {c!r}")
-            return True
-        self.log(event="ok", command=line.strip())
+            return False
         return True
 
 
