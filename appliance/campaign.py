@@ -521,15 +521,9 @@ class Campaign:
             raise CampaignError(
                 f"--workers {self.workers} needs Ray, which is not installed: pip install "
                 "'fieldguard[campaign]' (or pip install ray), or run with --workers 1") from None
-        import logging
         started = not ray.is_initialized()
         if started:
-            kw = dict(include_dashboard=False, logging_level=logging.WARNING,
-                      log_to_driver=False)
-            if self.address:
-                ray.init(address=self.address, **kw)
-            else:
-                ray.init(num_cpus=self.workers, object_store_memory=200 * 2**20, **kw)
+            init_ray(self.workers, self.address)
             sigterm_interrupts()
         try:
             workers = int(ray.cluster_resources().get("CPU", self.workers))
@@ -589,6 +583,32 @@ def register(sub) -> None:
     c.add_argument("--no-report", action="store_true", help="summary.json only, no report.md")
     c.add_argument("--json", action="store_true", help="print the summary as JSON")
     c.set_defaults(func=cmd_campaign)
+
+
+def init_ray(workers: int, address: str | None = None, object_store_mb: int = 200,
+             attempts: int = 3) -> None:
+    """Start a local Ray in-process with ``workers`` CPUs (or join ``address``). Ray gives its
+    raylet 30 s to register, which a heavily loaded host can miss: a local start that times
+    out is shut down and tried again."""
+    import logging
+
+    import ray
+    kw = dict(include_dashboard=False, logging_level=logging.WARNING, log_to_driver=False)
+    if address:
+        ray.init(address=address, **kw)
+        return
+    for k in range(attempts):
+        try:
+            ray.init(num_cpus=workers, object_store_memory=object_store_mb * 2**20, **kw)
+            return
+        except Exception as exc:                 # Ray raises a bare Exception for this
+            if "timed out during startup" not in str(exc):
+                raise
+            ray.shutdown()
+            if k == attempts - 1:
+                raise CampaignError(f"could not start a local Ray in {attempts} tries ({exc}); "
+                                    "the machine is too busy: try again, or run with "
+                                    "--workers 1") from None
 
 
 def sigterm_interrupts() -> None:

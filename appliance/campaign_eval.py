@@ -46,14 +46,10 @@ def eval_many(runs: list[str], pipeline=None, config_path=None, workers: int | N
         raise FieldguardError(f"--workers {workers} needs Ray, which is not installed: pip "
                               "install 'fieldguard[campaign]' (or pip install ray), or run "
                               "with --workers 1") from None
-    import logging
+    from appliance.campaign import init_ray
     started = not ray.is_initialized()
     if started:
-        kw = dict(include_dashboard=False, logging_level=logging.WARNING, log_to_driver=False)
-        if address:
-            ray.init(address=address, **kw)
-        else:
-            ray.init(num_cpus=workers, object_store_memory=100 * 2**20, **kw)
+        init_ray(workers, address, object_store_mb=100)
     try:
         task = ray.remote(num_cpus=1, max_retries=0)(_score)
         refs = [task.remote(os.path.abspath(r), pipeline,

@@ -29,9 +29,8 @@ def local_ray():
     """One local Ray with 2 CPUs for the module (started as the campaign starts it; the
     campaign and eval use a Ray that is already up and leave it up)."""
     ray = pytest.importorskip("ray")
-    import logging
-    ray.init(num_cpus=2, include_dashboard=False, logging_level=logging.WARNING,
-             log_to_driver=False, object_store_memory=200 * 2**20)
+    from appliance.campaign import init_ray
+    init_ray(2)
     yield ray
     ray.shutdown()
 
