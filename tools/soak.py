@@ -27,9 +27,11 @@ frame with CAN_ERR_BUSOFF); the CAN speed source silent; CPU starvation (the dae
 
 For every fault: when it became detectable (the injection's wire time where the emulator reports
 it, else the command time plus the device's freshness timeout), the first STOP the MAVLink
-vehicle heard after it (latency in 10 Hz cycles, also from the CAN vehicle), false CLEARs (a
-CLEAR or SLOW heard from 2 cycles after it was detectable until it was removed), and recovery
-(CLEAR again). SIGKILL leaves nothing to send: there the vehicle's own failsafe (CAN: 300 ms
+vehicle heard after it — latency in the box's cycles, counted on the wire (one OBSTACLE_DISTANCE
+a cycle: the cycle that sends STOP is 1), and in ms; the same for the CAN vehicle's verdict —
+false CLEARs (a CLEAR or SLOW heard from the box's second cycle after the fault was detectable
+until it was removed), and recovery (CLEAR again). A loop that runs late is itself a fault
+(lag_cycles_fault), and its overruns are counted as deadline misses. SIGKILL leaves nothing to send: there the vehicle's own failsafe (CAN: 300 ms
 without a frame) is measured, apart. Every second: the daemon's RSS and open fds from /proc,
 and its status document (overruns = deadline misses). Writes DIR/summary.json, DIR/events.json
 and PNG plots (OpenCV drawing); ``--json`` prints the summary.
@@ -38,7 +40,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
+import bisect
 import os
 import random
 import shutil
@@ -579,6 +581,16 @@ class Soak:
                 last = x
             return last
 
+        od = sorted(e["t"] for e in self.wire.events("mav") if e.get("ev") == "od")
+        def cycles(td, ts):
+            """The box's cycles from ``td`` to the one that sent STOP at ``ts``, counted on the
+            wire: one OBSTACLE_DISTANCE a cycle, sent after that cycle's HEARTBEAT."""
+            return bisect.bisect_right(od, ts) - bisect.bisect_right(od, td) + 1
+
+        def nth_cycle_after(td, n):
+            i = bisect.bisect_right(od, td) + n - 1
+            return od[i] if i < len(od) else td + n * PERIOD_S
+
         out_faults, lat, can_lat, fails = [], [], [], []
         false_clears = 0
         for f in self.faults:
@@ -593,12 +605,14 @@ class Soak:
             ts = first_stop(hb, lambda x: x[1] == MAV_STOP, f["t_inject"], horizon)
             tc = first_stop(can, lambda x: x[1], f["t_inject"], horizon)
             if ts is not None:
-                g["stop_cycles_mav"] = max(0, math.ceil(round((ts - td) / PERIOD_S, 6)))
+                g["stop_cycles_mav"] = cycles(td, ts) if ts > td else 0
+                g["stop_ms_mav"] = round(max(0.0, ts - td) * 1000)
             if tc is not None:
-                g["stop_cycles_can"] = max(0, math.ceil(round((tc - td) / PERIOD_S, 6)))
+                g["stop_cycles_can"] = cycles(td, tc) if tc > td else 0
+                g["stop_ms_can"] = round(max(0.0, tc - td) * 1000)
             fc = 0
             if f["expect"] == "stop":
-                w0, w1 = td + 2 * PERIOD_S, tr
+                w0, w1 = nth_cycle_after(td, 2), tr   # from the 2nd cycle after detectable
                 if w1 > w0:
                     s0 = state_at(hb, w0)
                     fc += int(s0 is None or s0[1] != MAV_STOP)
@@ -667,7 +681,9 @@ class Soak:
         by_kind = {}
         for g in out_faults:
             k = by_kind.setdefault(g["kind"], {"n": 0, "stop_cycles_mav": [], "recovery_s": [],
-                                               "false_clears": 0})
+                                               "false_clears": 0, "max_stop_ms": None})
+            if "stop_ms_mav" in g:
+                k["max_stop_ms"] = max(k["max_stop_ms"] or 0, g["stop_ms_mav"])
             k["n"] += 1
             if "stop_cycles_mav" in g:
                 k["stop_cycles_mav"].append(g["stop_cycles_mav"])
@@ -685,6 +701,9 @@ class Soak:
             "false_clears": false_clears,
             "max_stop_latency_cycles": max(lat) if lat else None,
             "max_stop_latency_cycles_can": max(can_lat) if can_lat else None,
+            "max_stop_latency_ms": max((g.get("stop_ms_mav", 0) for g in out_faults
+                                        if g.get("expect") == "stop"), default=None),
+            "box_cycles_heard": len(od),
             "stops_within_2_cycles": sum(1 for x in lat if x <= 2),
             "stops_measured": len(lat),
             "faults_without_stop": fails,
@@ -850,14 +869,15 @@ def main(argv=None) -> int:
         soak.stop_evt.set()
         soak.box.stop()
         soak.wire.stop()
-    summary = soak.analyse()
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
     (out / "events.json").write_text(json.dumps({
         "t0": soak.t0, "starts": [s - soak.t0 for s in soak.box.starts],
         "samples": [{k: (round(v - soak.t0, 2) if k == "t" else v) for k, v in s.items()}
                     for s in soak.samples],
-        "mav": [e for e in soak.wire.events("mav") if e.get("ev") in ("hb", "set_mode")],
-        "can": [e for e in soak.wire.events("can") if e.get("ev") == "state"]}))
+        "mav": [e for e in soak.wire.events("mav") if e.get("ev") in ("hb", "set_mode", "od")],
+        "can": [e for e in soak.wire.events("can") if e.get("ev") == "state"],
+        "faults": soak.faults}))
+    summary = soak.analyse()
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
     try:
         soak.plots(summary)
     except Exception as exc:        # plots are a by-product; the figures are in the JSON

@@ -48,7 +48,8 @@ def main():
     ap.add_argument("--states", action="store_true",
                     help="print every HEARTBEAT from a component 196 (the box) as "
                          '{"ev": "hb", "status": MAV_STATE, "t": monotonic, "lost": n, "rx": n}; '
-                         "lost counts gaps in the box's packet sequence numbers")
+                         "lost counts gaps in the box's packet sequence numbers; and "
+                         '{"ev": "od", "t": monotonic} for every OBSTACLE_DISTANCE (one a cycle)')
     a = ap.parse_args()
     m = mavutil.mavlink_connection(a.connection, source_system=a.sysid, source_component=1,
                                    dialect="ardupilotmega")
@@ -125,6 +126,8 @@ def main():
             box_rx["rx"] += 1
             if t == "HEARTBEAT":
                 emit(ev="hb", status=msg.system_status, t=time.monotonic(), **box_rx)
+            elif t == "OBSTACLE_DISTANCE":            # one a cycle: the box's cycles counted
+                emit(ev="od", t=time.monotonic())
         if t not in seen and t != "BAD_DATA":
             seen.add(t)
             emit(ev="rx", type=t, src=[msg.get_srcSystem(), msg.get_srcComponent()])
