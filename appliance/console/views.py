@@ -50,8 +50,8 @@ def _track_style(t: dict):
 
 def camera_view(res, tracks=()) -> np.ndarray | None:
     """The camera image (stereo left, else RGB-D colour) with the pipelines' masks, the
-    occupied cells (yellow) and each track's footprint box (blue, labelled). None without a
-    camera in the cycle's inputs."""
+    occupied cells (yellow) and each track's footprint box (blue; confirmed ones labelled,
+    tentative ones thin). None without a camera in the cycle's inputs."""
     img = camera_panel(res)
     inp = res.inputs
     if img is None or inp is None:
@@ -59,7 +59,12 @@ def camera_view(res, tracks=()) -> np.ndarray | None:
     src = inp.stereo if inp.stereo is not None else inp.rgbd
     cam, mount = src.calib.camera, src.calib.mount
     s = img.shape[0] / cam.height
+    # the snapshot's camera panel already draws the cycle's confirmed tracks (labelled with
+    # distance and cues); the others (tentative ones, or tracks handed in) are drawn here
+    drawn = {t.id for t in getattr(res, "tracks", None) or () if getattr(t, "confirmed", False)}
     for t in track_dicts(tracks):
+        if t.get("id") in drawn:
+            continue
         hl = max(0.2, float(t.get("length_m") or 0.5)) / 2
         hw = max(0.2, float(t.get("width_m") or 0.5)) / 2
         x, y = t["x_m"], t["y_m"]
