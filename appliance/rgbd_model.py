@@ -106,7 +106,8 @@ def load(path: str | Path | None = None) -> RgbdClassModel:
                                  key="perception.rgbd.model")
         with np.load(p, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError, zlib.error) as exc:
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, zlib.error,
+            NotImplementedError) as exc:      # zipfile: "zip file version 9.3", compression
         raise RgbdModelError(f"{where}: not a readable model file ({exc})",
                              key="perception.rgbd.model") from None
     if "format" not in data or str(data["format"]) != FORMAT:
