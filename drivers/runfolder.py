@@ -219,7 +219,10 @@ def _parse_frames(info: RunInfo) -> list[FrameRecord]:
         text = file.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:
         raise RunFormatError(f"{file}: cannot read: {exc}") from None
-    rows = list(csv.reader(io.StringIO(text)))
+    try:
+        rows = list(csv.reader(io.StringIO(text)))
+    except csv.Error as exc:            # a bare CR inside a field (tests/fuzz/fuzz_runfolder.py)
+        raise RunFormatError(f"{file}: not readable as CSV: {exc}") from None
     if not rows:
         raise RunFormatError(f"{file}: empty (needs a header row with an 'index' column)")
     header = [h.strip() for h in rows[0]]
