@@ -147,7 +147,8 @@ class SimField:
         out = []
         for i, off in enumerate(((0.0, 0.0, 0.0), (0.0, -cal.baseline_m, 0.0))):
             c, r, _ = self._sensor_pose(cal.mount, off)
-            v = render_view(self.world, self.lighting, c, r, cam, t_max=80.0, rel_step=rel)
+            v = render_view(self.world, self.lighting, c, r, cam, t_max=80.0, rel_step=rel,
+                            need_depth=False)
             out.append(expose(v.radiance, self._rng(seq, i), self.lighting.mode))
         return StereoFrame(int(stamp_ns), int(seq), out[0], out[1], cal, self.illumination)
 

@@ -53,7 +53,7 @@ class _Timer:
 
     def __init__(self):
         import time
-        self._time = time.perf_counter
+        self._time = time.process_time     # CPU time (the machine is shared)
         self.t = self._time()
 
     def __call__(self, label):
@@ -83,10 +83,165 @@ def _level_basis(yaw: float) -> np.ndarray:
     return np.array([[s, 0.0, c], [-c, 0.0, s], [0.0, -1.0, 0.0]])
 
 
+# "numba": the compiled loops of fastrender.py (the default); "numpy": the whole-array code below
+ENGINE = "numba"
+
+
+def _virtual_camera(cam: Intrinsics, r_opt2world: np.ndarray):
+    """The level virtual camera that covers the real one: (yaw, M real->virtual optical,
+    u0, v0, Wv, Hv, cxv, cyv)."""
+    fwd = r_opt2world[:, 2]
+    yaw = math.atan2(fwd[1], fwd[0])
+    Rv = _level_basis(yaw)
+    M = Rv.T @ r_opt2world
+    Kinv = np.linalg.inv(cam.matrix())
+    n = 24
+    us = np.linspace(-0.5, cam.width - 0.5, n)
+    vs = np.linspace(-0.5, cam.height - 0.5, n)
+    border = np.concatenate([np.stack([us, np.full(n, vs[0])], 1), np.stack([us, np.full(n, vs[-1])], 1),
+                             np.stack([np.full(n, us[0]), vs], 1), np.stack([np.full(n, us[-1]), vs], 1)])
+    rays = M @ (Kinv @ np.vstack([border.T, np.ones(len(border))]))
+    if np.any(rays[2] <= 0.05):
+        raise ValueError("camera looks too far up or down for the level-camera renderer")
+    pu = cam.fx * rays[0] / rays[2]
+    pv = cam.fy * rays[1] / rays[2]
+    u0, u1 = math.floor(pu.min()) - 2, math.ceil(pu.max()) + 2
+    v0, v1 = math.floor(pv.min()) - 2, math.ceil(pv.max()) + 2
+    return yaw, M, Kinv, u1 - u0 + 1, v1 - v0 + 1, float(-u0), float(-v0)
+
+
 def render_view(world: World, light: Lighting, centre: np.ndarray, r_opt2world: np.ndarray,
                 cam: Intrinsics, t_max: float = 80.0, t_min: float = 0.3, rel_step: float = 0.004,
-                min_step: float = 0.01) -> View:
-    """Render one pinhole camera (optical centre ``centre`` in world, attitude ``r_opt2world``)."""
+                min_step: float = 0.01, need_depth: bool = True) -> View:
+    """Render one pinhole camera (optical centre ``centre`` in world, attitude ``r_opt2world``).
+    ``need_depth=False``: only the radiance is warped to the real camera (zdepth, mat and
+    albedo_lum are None), which is all a stereo camera needs."""
+    if ENGINE == "numba" and world.extent is not None:
+        return _render_view_fast(world, light, centre, r_opt2world, cam, t_max, t_min, rel_step,
+                                 min_step, need_depth)
+    return render_view_numpy(world, light, centre, r_opt2world, cam, t_max, t_min, rel_step,
+                             min_step)
+
+
+def _column_intervals(world: World, C, yaw, a, t, t_min, t_max, idx):
+    """(n, Wv, 2) int32 [j0, j1) sample intervals of each obstacle in ``idx`` per column."""
+    Wv = a.shape[0]
+    f2 = np.array([math.cos(yaw), math.sin(yaw)])
+    r2 = np.array([math.sin(yaw), -math.cos(yaw)])
+    out = np.zeros((len(idx), Wv, 2), np.int32)
+    nrm = np.sqrt(1 + a * a)
+    for i, k in enumerate(idx):
+        o = world.obstacles[k]
+        q = np.array([o.x - C[0], o.y - C[1]])
+        qf, qr = float(q @ f2), float(q @ r2)
+        R = o.radius
+        near = np.abs(qr - a * qf) <= R * nrm
+        if not near.any():
+            continue
+        tc = (qf + a * qr) / (1 + a * a)
+        lo = tc - R / nrm
+        hi = tc + R / nrm
+        j0 = np.searchsorted(t, lo, "left")
+        j1 = np.searchsorted(t, hi, "right")
+        out[i, :, 0] = np.where(near, j0, 0)
+        out[i, :, 1] = np.where(near, j1, 0)
+    return out
+
+
+def _render_view_fast(world, light, centre, r_opt2world, cam, t_max, t_min, rel_step, min_step,
+                      need_depth):
+    from . import fastrender as fr
+    _T = _Timer()
+    C = np.asarray(centre, np.float64)
+    yaw, M, Kinv, Wv, Hv, cxv, cyv = _virtual_camera(cam, r_opt2world)
+    fx, fy = float(cam.fx), float(cam.fy)
+    t = march_steps(float(t_min), float(t_max), float(rel_step), float(min_step)).astype(np.float64)
+    S = t.shape[0]
+    kp = world.kernel_params()
+    f2x, f2y = math.cos(yaw), math.sin(yaw)
+    r2x, r2y = math.sin(yaw), -math.cos(yaw)
+    a = (np.arange(Wv, dtype=np.float64) - cxv) / fx
+    # obstacles that can show: in front, within range
+    idx = []
+    for k, o in enumerate(world.obstacles):
+        qf = (o.x - C[0]) * f2x + (o.y - C[1]) * f2y
+        if qf + o.radius < t_min or math.hypot(o.x - C[0], o.y - C[1]) - o.radius > t_max:
+            continue
+        idx.append(k)
+    obs = world.obstacle_rows(idx)
+    ocols = _column_intervals(world, C, yaw, a, t, t_min, t_max, idx)
+    h = np.empty((Wv, S), np.float64)
+    mat = np.empty((Wv, S), np.int32)
+    jhit = np.empty((Wv, Hv), np.int32)                 # transposed: [column, row]
+    Kv = np.array([[fx, 0, cxv], [0, fy, cyv], [0, 0, 1.0]])
+    Hm = Kv @ M @ Kinv                                  # real pixel -> virtual pixel
+    Hr = np.linalg.inv(Hm)                              # virtual pixel -> real pixel
+    # the topmost virtual row each virtual column must have (from the real image's border)
+    W_, H_ = cam.width, cam.height
+    bu = np.concatenate([np.arange(-2.0, W_ + 2.0), np.full(H_ + 4, W_ + 1.0),
+                         np.arange(-2.0, W_ + 2.0), np.full(H_ + 4, -2.0)])
+    bv = np.concatenate([np.full(W_ + 4, -2.0), np.arange(-2.0, H_ + 2.0),
+                         np.full(W_ + 4, H_ + 1.0), np.arange(-2.0, H_ + 2.0)])
+    pb = Hm @ np.vstack([bu, bv, np.ones_like(bu)])
+    pcol = np.clip(np.round(pb[0] / pb[2]).astype(np.int64), 0, Wv - 1)
+    rmin = np.full(Wv, Hv, np.int64)
+    np.minimum.at(rmin, pcol, np.floor(pb[1] / pb[2]).astype(np.int64) - 2)
+    # (the border is sampled every real pixel: a column it skips takes its neighbours' row)
+    rmin = np.minimum(rmin, np.minimum(np.roll(rmin, 1), np.roll(rmin, -1)))
+    _T("0")
+    fr.march(kp["kind"], kp["G"], kp["gp"], kp["tp"], kp["bp"], kp["tile77"], kp["top_m"], obs,
+             ocols, C, f2x, f2y, r2x, r2y, fx, fy, cxv, cyv, Wv, Hv, t, h, mat, jhit, rmin)
+    _T("march")
+    mode = {"day": 0, "night-strobe": 1}.get(light.mode, 2)
+    sun = np.asarray(light.sun, np.float64)
+    # obstacles whose shadow can fall in view: (x, y, r, top, reach)
+    sh = []
+    horiz = math.hypot(sun[0], sun[1])
+    if mode == 0 and horiz > 1e-6:
+        tan_e = sun[2] / horiz
+        for o in world.obstacles:
+            r = 0.5 * min(o.length_m, o.width_m) if o.shape != "vehicle" else 0.42 * o.width_m + 0.3
+            top = o.z0 + o.height_m
+            reach = (top - (o.z0 - 0.3)) / tan_e + r
+            if math.hypot(o.x - C[0], o.y - C[1]) - reach - r > t_max:
+                continue
+            sh.append((o.x, o.y, r, top, reach))
+    sh = np.array(sh, np.float64).reshape(-1, 5)
+    light_p = np.array([light.strobe_power, light.cloud, light.dusk, light.wind_mps[0],
+                        light.wind_mps[1], world.time_s, CLOUD_CELL_M], np.float64)
+    img = np.empty((Wv, Hv, 3), np.float32)             # transposed: [column, row]
+    tv = np.empty((Wv, Hv), np.float32)
+    mv = np.empty((Wv, Hv), np.float32)
+    lum = np.empty((Wv, Hv), np.float32)
+    fr.shade(kp["kind"], kp["G"], kp["gp"], kp["tp"], kp["bp"], kp["tile77"], obs, kp["salt"], C,
+             f2x, f2y, r2x, r2y, fx, fy, cxv, cyv, Wv, Hv, t, h, mat, jhit, mode, sun, light_p,
+             kp["grass"], kp["gravel"], kp["sizes"], kp["offsets"], kp["tiles"],
+             np.asarray(world.sky_bgr, np.float64), np.asarray(world.horizon_bgr, np.float64),
+             img, tv, mv, lum, sh, Hr, float(W_), float(H_))
+    _T("shade")
+    Hm = np.array([[0, 1, 0], [1, 0, 0], [0, 0, 1.0]]) @ Hm     # the buffers are transposed
+    dsize = (cam.width, cam.height)
+    flags_lin = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    flags_nn = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
+    out = cv2.warpPerspective(img, Hm, dsize, flags=flags_lin, borderMode=cv2.BORDER_REPLICATE)
+    if not need_depth:
+        _T("warp")
+        return View(out, None, None, None)
+    tw = cv2.warpPerspective(tv, Hm, dsize, flags=flags_nn, borderMode=cv2.BORDER_REPLICATE)
+    mw = cv2.warpPerspective(mv, Hm, dsize, flags=flags_nn, borderMode=cv2.BORDER_REPLICATE)
+    lw = cv2.warpPerspective(lum, Hm, dsize, flags=flags_nn, borderMode=cv2.BORDER_REPLICATE)
+    uu = (np.arange(cam.width, dtype=np.float32) - np.float32(cam.cx)) / np.float32(cam.fx)
+    ww = (np.arange(cam.height, dtype=np.float32) - np.float32(cam.cy)) / np.float32(cam.fy)
+    denom = np.float32(M[2, 0]) * uu[None, :] + np.float32(M[2, 1]) * ww[:, None] + np.float32(M[2, 2])
+    z = tw / denom
+    _T("warp")
+    return View(out, z.astype(np.float32), mw.astype(np.int16), lw)
+
+
+def render_view_numpy(world: World, light: Lighting, centre: np.ndarray, r_opt2world: np.ndarray,
+                      cam: Intrinsics, t_max: float = 80.0, t_min: float = 0.3,
+                      rel_step: float = 0.004, min_step: float = 0.01) -> View:
+    """The whole-array numpy renderer (the reference the compiled loops follow)."""
     f32 = np.float32
     _T = _Timer()
     C = np.asarray(centre, np.float64)
@@ -374,6 +529,21 @@ def _noise(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
 
 def expose(radiance: np.ndarray, rng: np.random.Generator, mode: str) -> np.ndarray:
     """Radiance -> 8-bit BGR with sensor noise (more at night: gain up, shot noise)."""
+    if ENGINE == "numba":
+        from . import fastrender as fr
+        h, w = radiance.shape[:2]
+        key = (h, w)
+        pool = _NOISE_POOL.get(key)
+        if pool is None:
+            pool = np.random.default_rng(12345).standard_normal((h + 97, w + 89, 3),
+                                                                dtype=np.float32)
+            _NOISE_POOL[key] = pool
+        dy, dx = int(rng.integers(0, 97)), int(rng.integers(0, 89))
+        flip = bool(rng.integers(0, 2))
+        out = np.empty((h, w, 3), np.uint8)
+        fr.expose(np.ascontiguousarray(radiance, np.float32), pool, dy, dx, flip,
+                  mode == "night-strobe", out)
+        return out
     x = radiance * np.float32(255.0)
     h, w = x.shape[:2]
     if mode == "night-strobe":
@@ -422,6 +592,15 @@ def cast_laser(world: World, origin: np.ndarray, dirs: np.ndarray, range_max: fl
         t = np.array(ts[:-1], f32)
     N = dirs.shape[0]
     O = np.asarray(origin, np.float64)
+    if ENGINE == "numba" and world.extent is not None:
+        from . import fastrender as fr
+        kp = world.kernel_params()
+        out = np.empty(N, np.float32)
+        fr.laser(kp["kind"], kp["G"], kp["gp"], kp["tp"], kp["bp"], kp["tile77"],
+                 float(world.max_terrain_m), world.obstacle_rows(), O,
+                 np.ascontiguousarray(dirs, np.float64), t.astype(np.float64), float(range_max),
+                 out)
+        return out
     zr = (f32(O[2]) + dirs[:, 2:3].astype(f32) * t[None, :])
     # terrain can only be touched where the beam is below the highest terrain
     cand = zr <= f32(world.max_terrain_m)

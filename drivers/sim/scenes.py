@@ -225,6 +225,12 @@ class Scene:
         return "night-strobe" if self.illumination == "night-strobe" else "day"
 
 
+def _extent(path: np.ndarray, margin_m: float = 100.0) -> tuple[float, float, float, float]:
+    """The box the world's ground grid covers: the route and everything a sensor sees from it."""
+    return (float(path[:, 0].min() - margin_m), float(path[:, 1].min() - margin_m),
+            float(path[:, 0].max() + margin_m), float(path[:, 1].max() + margin_m))
+
+
 def _lawnmower(length_m: float, spacing_m: float, passes: int, turn_pts: int = 24) -> np.ndarray:
     """Passes along +x / -x at y = 0, spacing, 2*spacing..., joined by semicircular turns."""
     pts = []
@@ -372,7 +378,8 @@ def build_scene(name: str, seed: int = 0) -> Scene:
     if name == "greenhouse":
         rng = np.random.default_rng([seed, 2])
         waves = make_waves(rng, 0.02, n=4, wavelengths=(3.0, 12.0))
-        world = World("greenhouse", seed, _greenhouse_obstacles(rng), waves,
+        path = np.array([(x, 0.0) for x in np.arange(0.0, 36.0, 1.0)])
+        world = World("greenhouse", seed, _greenhouse_obstacles(rng), waves, extent=_extent(path),
                       sky_bgr=(0.97, 0.98, 0.98), horizon_bgr=(0.93, 0.95, 0.95))
         path = np.array([(x, 0.0) for x in np.arange(0.0, 36.0, 1.0)])
         return Scene(name, seed, world, "greenhouse", path, cruise_mps=0.7, slow_mps=0.3,
@@ -392,7 +399,7 @@ def build_scene(name: str, seed: int = 0) -> Scene:
         obstacles = []
     if name == "stubble-lookalike":
         obstacles = [_lookalike(o) for o in obstacles]
-    world = World("stubble", seed, obstacles, waves)
+    world = World("stubble", seed, obstacles, waves, extent=_extent(path))
     illum = "night-strobe" if name == "stubble-night" else "day"
     seg = np.hypot(np.diff(path[:, 0]), np.diff(path[:, 1]))
     lanes = _lane_intervals(np.concatenate([[0.0], np.cumsum(seg)]), length, passes)
@@ -658,7 +665,7 @@ def _stubble_coverage(kind: str, seed: int) -> Scene:
     cruise, headland = 2.5, 8.0
     orng = np.random.default_rng([seed, 22])
     obstacles = _coverage_stubble_obstacles(orng, length, spacing, passes, lanes, cruise, headland)
-    world = World("stubble", seed, obstacles, waves,
+    world = World("stubble", seed, obstacles, waves, extent=_extent(path),
                   banks=np.array(fp["banks"], np.float32).reshape(-1, 5),
                   row_offset_m=float(rng.uniform(0, fp["row_spacing_m"])),
                   row_spacing_m=fp["row_spacing_m"], tuft_spacing_m=fp["tuft_spacing_m"],
@@ -735,7 +742,8 @@ def _greenhouse_coverage(kind: str, seed: int) -> Scene:
             o = _thing(orng, f"g{len(obs) + 1}", x, y, things, protos)
             o.placement = "headland"
             obs.append(o)
-    world = World("greenhouse", seed, obs, waves, path_half_width_m=half, bush_period_m=period,
+    world = World("greenhouse", seed, obs, waves, extent=_extent(path),
+                  path_half_width_m=half, bush_period_m=period,
                   bush_x_range=(0.0, length), sky_bgr=(0.97, 0.98, 0.98),
                   horizon_bgr=(0.93, 0.95, 0.95))
     params = {"path_half_width_m": half, "lane_length_m": length, "paths": passes,

@@ -31,6 +31,7 @@ MAT_LEAF = 3
 MAT_OBSTACLE = 16
 
 ROW_SPACING_M = 0.75
+GROUND_CELL_M = 0.2
 TUFT_SPACING_M = 0.22
 ASSETS = Path(__file__).resolve().parent / "assets"
 
@@ -335,6 +336,10 @@ class World:
     litter: float = 0.0                      # more (>0) or less (<0) straw litter on the soil
     bush_x_range: tuple[float, float] | None = None   # greenhouse: bushes only for x in range
     time_s: float = 0.0                      # the world's clock (walkers, cloud shadows)
+    # (x0, y0, x1, y1): the ground is the analytic undulation sampled on a GROUND_CELL_M grid
+    # over this box and interpolated bilinearly (the renderer's compiled loops read the same
+    # grid, so camera, laser, vehicle and truth share one ground). None: analytic everywhere.
+    extent: tuple[float, float, float, float] | None = None
 
     def __post_init__(self):
         self._salt = (self.seed * 2654435761 + 12345) & 0xFFFFFFFF
@@ -369,6 +374,39 @@ class World:
 
     # ---- geometry --------------------------------------------------------------------------
     def ground(self, x, y):
+        """Ground height at points (the grid's bilinear interpolation, see ``extent``)."""
+        if self.extent is None:
+            return self.ground_analytic(x, y)
+        G, gp = self.ground_grid()
+        fx = (np.asarray(x, np.float64) - gp[0]) * gp[2]
+        fy = (np.asarray(y, np.float64) - gp[1]) * gp[2]
+        nx, ny = int(gp[3]), int(gp[4])
+        fx = np.clip(fx, 0.0, nx - 1.000001)
+        fy = np.clip(fy, 0.0, ny - 1.000001)
+        ix = fx.astype(np.int64)
+        iy = fy.astype(np.int64)
+        tx, ty = fx - ix, fy - iy
+        i0 = iy * nx + ix
+        a = G[i0] + (G[i0 + 1] - G[i0]) * tx
+        b = G[i0 + nx] + (G[i0 + nx + 1] - G[i0 + nx]) * tx
+        return (a + (b - a) * ty).astype(np.float32)
+
+    def ground_grid(self):
+        """(flat float64 grid, (x0, y0, 1/cell, nx, ny)) of the ground over ``extent``."""
+        g = getattr(self, "_ground_grid", None)
+        if g is None:
+            x0, y0, x1, y1 = self.extent
+            nx = int(math.ceil((x1 - x0) / GROUND_CELL_M)) + 2
+            ny = int(math.ceil((y1 - y0) / GROUND_CELL_M)) + 2
+            xs = x0 + np.arange(nx) * GROUND_CELL_M
+            ys = y0 + np.arange(ny) * GROUND_CELL_M
+            X, Y = np.meshgrid(xs, ys)
+            G = self.ground_analytic(X, Y).astype(np.float64).ravel()
+            g = (G, np.array([x0, y0, 1.0 / GROUND_CELL_M, nx, ny], np.float64))
+            self._ground_grid = g
+        return g
+
+    def ground_analytic(self, x, y):
         x = np.asarray(x, np.float32)
         y = np.asarray(y, np.float32)
         z = np.zeros(np.broadcast(x, y).shape, np.float32)
@@ -536,6 +574,48 @@ class World:
             if m.any():
                 out[m] = o.albedo(x[m], y[m], z[m], footprint[m])
         return out
+
+    # ---- the compiled renderer's view of the world (drivers/sim/fastrender.py) ---------------
+    def kernel_params(self) -> dict:
+        """Arrays the compiled loops read (cached; obstacle rows are rebuilt per call since
+        walkers move)."""
+        kp = getattr(self, "_kp", None)
+        if kp is None:
+            G, gp = self.ground_grid()
+            s = self._salt
+            tp = np.array([self.row_offset_m, self.row_spacing_m, self.tuft_spacing_m,
+                           s ^ 0x51, s ^ 0x5A, self.stubble_height, self.stubble_gap,
+                           *self.straw_bgr, *self.soil_bgr, *self.litter_bgr, self.litter],
+                          np.float64)
+            xr = self.bush_x_range or (-1e9, 1e9)
+            bp = np.array([self.path_half_width_m, self.bush_period_m, s ^ 0xB5, s ^ 0x1EAF,
+                           xr[0], xr[1]], np.float64)
+            tiles = np.stack([_noise_tile(s ^ k) for k in (0x9, 0xA, 0xB, 0xC, 0xC10D)])
+            grass, sizes, offsets = _flat_pyramid("grass")
+            gravel, sizes2, offsets2 = _flat_pyramid("gravel")
+            assert np.array_equal(sizes, sizes2) and np.array_equal(offsets, offsets2)
+            kp = {"kind": 0 if self.kind == "stubble" else 1, "G": G, "gp": gp, "tp": tp,
+                  "bp": bp, "tile77": _noise_tile(s ^ 0x77), "tiles": tiles,
+                  "grass": grass, "gravel": gravel, "sizes": sizes, "offsets": offsets,
+                  "top_m": 0.53 * self.stubble_height if self.kind == "stubble" else 1.27,
+                  "salt": s}
+            self._kp = kp
+        return kp
+
+    def obstacle_rows(self, idx=None) -> np.ndarray:
+        """(n, 19) float64 rows of the obstacles (all, or those in ``idx``) for the kernels."""
+        shapes = {"cylinder": 0, "box": 1, "vehicle": 2, "person": 3, "person-crouching": 4,
+                  "dome": 5}
+        rows = []
+        for k in (range(len(self.obstacles)) if idx is None else idx):
+            o = self.obstacles[k]
+            c, s = math.cos(math.radians(o.yaw_deg)), math.sin(math.radians(o.yaw_deg))
+            cls = 1 if o.cls in ("drum", "barrel", "look-alike-drum") else \
+                2 if o.cls in ("crate", "look-alike-crate", "box") else 0
+            rows.append([o.x, o.y, c, s, o.length_m, o.width_m, o.height_m, o.z0,
+                         shapes[o.shape], o.radius, 1.0 if o.texture == "stubble" else 0.0,
+                         *o.colour, *o.colour2, cls, k])
+        return np.array(rows, np.float64).reshape(-1, 19)
 
     def is_shiny(self, mat: np.ndarray) -> np.ndarray:
         shiny = np.zeros(mat.shape, bool)
