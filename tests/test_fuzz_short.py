@@ -1,16 +1,20 @@
-"""A few seconds of every fuzz target (tests/fuzz/): the committed corpus, then seeded random
-mutations of it, each input under a time limit. Any exception outside the project's error
+"""A few seconds of every fuzz target (tests/fuzz/): every seed and every input that once
+crashed (corpus/TARGET/regress-*), a fixed sample of the coverage finds, then seeded random
+mutations of them, each input under a time limit. Any exception outside the project's error
 family, or a hang, fails with the input written to tests/fuzz/crashes/ (the long,
 coverage-guided runs are tools/fuzz.sh TARGET MINUTES; figures in docs/reliability.md)."""
 import importlib
+import itertools
+import random
 import time
 
 import pytest
 
 from tests.fuzz.common import TARGETS, corpus_files, mutations, time_limit
 
-SECONDS = 2.5          # of mutations per target, after the corpus
+SECONDS = 1.5          # of mutations per target, after the corpus
 LIMIT_S = 10.0         # one input (the status target's snapshot takes ~0.1 s)
+SAMPLE = 25            # coverage finds replayed per target (seeds and regress-* always all)
 
 
 def _crash(target: str, data: bytes) -> str:
@@ -28,11 +32,15 @@ def test_fuzz_target_short(target):
     mod = importlib.import_module("tests.fuzz." + TARGETS[target])
     if hasattr(mod, "setup"):
         mod.setup()
-    seeds = [p.read_bytes() for p in corpus_files(target)]
-    assert seeds, f"no corpus for {target} (tests/fuzz/corpus/{target}/)"
+    files = corpus_files(target)
+    fixed = [p for p in files if p.name.startswith(("seed-", "regress-"))]
+    finds = [p for p in files if p not in fixed]
+    finds = random.Random(target).sample(finds, min(SAMPLE, len(finds)))
+    seeds = [p.read_bytes() for p in fixed + finds]
+    assert fixed, f"no seeds for {target} (tests/fuzz/corpus/{target}/seed-*)"
     n = 0
     end = None
-    for data in [*seeds, *mutations(seeds, 100000, seed=sum(map(ord, target)))]:
+    for data in itertools.chain(seeds, mutations(seeds, 10**6, seed=sum(map(ord, target)))):
         if n == len(seeds):
             end = time.monotonic() + SECONDS
         elif end is not None and time.monotonic() > end:

@@ -7,6 +7,7 @@ training does; odd -> the bytes are a model file, loaded with ``rgbd_model.load`
 must be RgbdModelError (a ConfigError)."""
 from __future__ import annotations
 
+from appliance import rgbd_model
 from hal.errors import FieldguardError
 
 from tests.fuzz.common import scratch_dir
@@ -15,7 +16,6 @@ _dir = None
 
 
 def one_input(data: bytes) -> None:
-    from appliance import rgbd_model
     global _dir
     if _dir is None:
         _dir = scratch_dir("annotations")

@@ -8,6 +8,8 @@ build a whole simulated field). Refusals must be ConfigError (FieldguardError)."
 from __future__ import annotations
 
 from appliance.config import load_config
+from appliance.perception.stereo import check_daemon_matchers
+from drivers.registry import create_device, driver_class
 from hal.clock import ManualClock
 from hal.errors import FieldguardError
 
@@ -15,6 +17,9 @@ from tests.fuzz.common import scratch_dir
 
 _file = None
 _HARDWARE = {"mavlink", "can-j1939", "sick-lms1xx", "serial", "log"}
+for _kind, _type in (("link", "mavlink"), ("link", "can-j1939"), ("laser", "sick-lms1xx"),
+                     ("trigger", "serial"), ("link", "log")):
+    driver_class(_kind, _type)      # imported here, so the fuzzer's instrumentation sees them
 
 
 def one_input(data: bytes) -> None:
@@ -24,11 +29,9 @@ def one_input(data: bytes) -> None:
     _file.write_bytes(data)
     try:
         cfg = load_config(_file)
-        from appliance.perception.stereo import check_daemon_matchers
         check_daemon_matchers(cfg)
     except FieldguardError:
         return
-    from drivers.registry import create_device
     for dc in cfg.devices:
         if dc.type not in _HARDWARE:
             continue

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from appliance.cue_model import CueModel
 from hal.errors import FieldguardError
 
 from tests.fuzz.common import ROOT, scratch_dir
@@ -27,6 +28,14 @@ def _template():
     return _base
 
 
+def setup() -> None:
+    """The one-time costs (importing onnx, the first onnxruntime session) before any input."""
+    global _dir
+    _dir = scratch_dir("cue-model")
+    _template()
+    CueModel(ROOT / "appliance/models/cue-stubble.onnx")
+
+
 def _with_metadata(data: bytes) -> bytes:
     import onnx
     m = onnx.ModelProto()
@@ -41,7 +50,6 @@ def _with_metadata(data: bytes) -> bytes:
 
 
 def one_input(data: bytes) -> None:
-    from appliance.cue_model import CueModel
     global _dir
     if _dir is None:
         _dir = scratch_dir("cue-model")

@@ -10,6 +10,7 @@ error-frame counting). Each frame is 6 + n bytes of input: a 32-bit identifier, 
 must be finite. ``J1939Id.parse`` and ``AddressClaimer.on_frame`` are also fed directly."""
 from __future__ import annotations
 
+import atexit
 import math
 import struct
 
@@ -32,6 +33,8 @@ def _setup():
                                     channel="fieldguard-fuzz-j1939")
         _link._open()
         _peer = can.Bus(interface="virtual", channel="fieldguard-fuzz-j1939")
+        atexit.register(_peer.shutdown)
+        atexit.register(_link._close)
         _claimer = AddressClaimer(_link.jname, 0x80)
     return _link, _peer, _claimer
 

@@ -12,6 +12,7 @@ import shutil
 
 import numpy as np
 
+from drivers.runfolder import RunReader
 from hal.errors import FieldguardError
 
 from tests.fuzz.common import ROOT, scratch_dir
@@ -45,8 +46,11 @@ def _template():
     return _base
 
 
+def setup() -> None:
+    _template()
+
+
 def one_input(data: bytes) -> None:
-    from drivers.runfolder import RunReader
     base = _template()
     run = scratch_dir("runfolder") / "run"
     if run.exists():

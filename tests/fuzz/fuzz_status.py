@@ -12,6 +12,10 @@ from __future__ import annotations
 
 import json
 
+from appliance.config import default_config
+from appliance.daemon import Daemon, sim_config
+from appliance.status import MAX_REQUEST, StatusServer
+
 from tests.fuzz.common import scratch_dir
 
 _server = None
@@ -22,9 +26,6 @@ def setup():
     global _server, _daemon
     if _server is not None:
         return _server
-    from appliance.config import default_config
-    from appliance.daemon import Daemon, sim_config
-    from appliance.status import StatusServer
     _daemon = Daemon(sim_config(default_config()), mode="sim", pace=0.0, serve_status=False)
     _daemon.start()
     _daemon.run(max_cycles=3)
@@ -34,7 +35,6 @@ def setup():
 
 
 def one_input(data: bytes) -> None:
-    from appliance.status import MAX_REQUEST
     server = setup()
     raw = data[:MAX_REQUEST + 1].split(b"\n", 1)[0].rstrip(b"\r")
     out = server.answer(raw)

@@ -19,10 +19,12 @@ def main() -> None:
     # instrument the project's own code (and the target's extra third-party parsers) for
     # coverage feedback; everything else runs uninstrumented
     extra = importlib.import_module("tests.fuzz.instrument").EXTRA.get(name, [])
+    # (every target imports the code it feeds at module level; setup(), which builds what a
+    # target needs and may import more of it, runs inside the block too)
     with atheris.instrument_imports(include=["hal", "drivers", "appliance", *extra]):
         mod = importlib.import_module(mod_name)
-    if hasattr(mod, "setup"):
-        mod.setup()
+        if hasattr(mod, "setup"):
+            mod.setup()
     # libFuzzer's -merge runs argv[0] again: tools/fuzz.sh points it at an executable wrapper
     argv0 = os.environ.get("FUZZ_ARGV0") or sys.argv[0]
     atheris.Setup([argv0] + sys.argv[2:], mod.one_input)
