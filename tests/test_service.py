@@ -101,7 +101,10 @@ def test_hung_loop_stops_the_watchdog_pings(tmp_path):
     th = threading.Thread(target=d.run, daemon=True)
     th.start()
     try:
-        time.sleep(1.0)
+        # the loop pings once it is up and healthy (start-up takes longer on a busy machine)
+        deadline = time.monotonic() + 30
+        while len(lst.lines("WATCHDOG=1")) < 3 and time.monotonic() < deadline:
+            time.sleep(0.05)
         before = len(lst.lines("WATCHDOG=1"))
         assert before >= 3
         HangPipeline.hang.set()
