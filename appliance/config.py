@@ -91,6 +91,9 @@ class TrackingConfig:
     ``enabled = false`` is the cell-based decision of the papers' reproduction tables."""
 
     enabled: bool = _f(False, doc="decide on confirmed tracks (false: on occupied cells)")
+    input: str = _f("occupied", choices=("occupied", "hits"),
+                    doc="cluster the grid's occupied cells (hit in consecutive cycles) or "
+                        "every cell hit this cycle")
     cluster_gap_m: float = _f(0.3, lo=0.0, hi=3.0, doc="cells this close join one candidate")
     min_cells: int = _f(1, lo=1, hi=1000, doc="smallest candidate, in cells")
     support_cells: float = _f(3.0, lo=0.1, hi=1000.0,
@@ -414,5 +417,3 @@ def load_config(path: str | Path) -> Config:
 
 def default_config() -> Config:
     return Config()
-
-
