@@ -585,6 +585,27 @@ def register(sub) -> None:
     c.set_defaults(func=cmd_campaign)
 
 
+def _end_ray_children() -> None:
+    """A Ray start that timed out leaves its processes (GCS, raylet, monitors) running as our
+    children and ray.shutdown() does not know them: end those, by pid (never another's)."""
+    import signal
+    me = os.getpid()
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            stat = (d / "stat").read_text()
+            ppid = int(stat.rsplit(")", 1)[1].split()[1])
+            cmd = (d / "cmdline").read_bytes()
+        except (OSError, ValueError, IndexError):
+            continue
+        if ppid == me and b"/ray/" in cmd:
+            try:
+                os.kill(int(d.name), signal.SIGKILL)
+            except OSError:
+                pass
+
+
 def init_ray(workers: int, address: str | None = None, object_store_mb: int = 200,
              attempts: int = 3) -> None:
     """Start a local Ray in-process with ``workers`` CPUs (or join ``address``). Ray gives its
@@ -595,7 +616,12 @@ def init_ray(workers: int, address: str | None = None, object_store_mb: int = 20
     import ray
     kw = dict(include_dashboard=False, logging_level=logging.WARNING, log_to_driver=False)
     if address:
-        ray.init(address=address, **kw)
+        try:
+            ray.init(address=address, **kw)
+        except ConnectionError as exc:
+            raise CampaignError(f"--address {address}: cannot join that Ray cluster ({exc}; "
+                                f"{exc.__cause__ or 'no more detail'})".splitlines()[0]
+                                ) from None
         return
     for k in range(attempts):
         try:
@@ -605,6 +631,7 @@ def init_ray(workers: int, address: str | None = None, object_store_mb: int = 20
             if "timed out during startup" not in str(exc):
                 raise
             ray.shutdown()
+            _end_ray_children()
             if k == attempts - 1:
                 raise CampaignError(f"could not start a local Ray in {attempts} tries ({exc}); "
                                     "the machine is too busy: try again, or run with "
