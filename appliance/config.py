@@ -295,6 +295,8 @@ def _parse_devices(data, file) -> tuple[DeviceConfig, ...]:
                               file=file, key=key)
         dtype = table["type"]
         try:
+            if not isinstance(dtype, str):      # type = [] raised TypeError (fuzz_config.py)
+                raise KeyError(dtype)
             cls = driver_class(kind, dtype)
         except KeyError:
             raise ConfigError(f"unknown type {dtype!r} for a {kind} device; known types: "
