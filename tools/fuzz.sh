@@ -4,13 +4,23 @@
 # coverage are merged back into tests/fuzz/corpus/TARGET/ (commit them); a crash, hang
 # (-timeout) or memory blow-up (-rss_limit_mb) leaves its input in tests/fuzz/crashes/ and
 # fails. Each run appends one line to tests/fuzz/fuzz-log.tsv (the figures in
-# docs/reliability.md): date, target, seconds, executions, result, commit.
+# docs/reliability.md): date, target, seconds, executions, result, commit;
+# `tools/fuzz.sh --summary` adds them up per target.
 #   TARGETS: cola strobe mavlink j1939 runfolder config annotations cue-model status
 #   env: FUZZ_NICE (15), FUZZ_TIMEOUT_S (20, one input), FUZZ_RSS_MB (2048), PY (.venv/bin/python)
 set -euo pipefail
 cd "$(dirname "$0")/.."
+if [ "${1:-}" = "--summary" ]; then
+  # fuzzing time per target so far (tests/fuzz/fuzz-log.tsv): the table in docs/reliability.md
+  printf '| target | runs | minutes | inputs | runs stopped by a failing input |\n|---|---|---|---|---|\n'
+  for t in cola strobe mavlink j1939 runfolder config annotations cue-model status; do
+    awk -F'\t' -v t="$t" '$2 == t { n++; s += $3; i += $4; if ($5 != "clean") d++ }
+      END { printf "| `%s` | %d | %.1f | %d | %d |\n", t, n, s / 60, i, d }' tests/fuzz/fuzz-log.tsv
+  done
+  exit 0
+fi
 if [ $# -ne 2 ]; then
-  echo "usage: tools/fuzz.sh TARGET MINUTES" >&2
+  echo "usage: tools/fuzz.sh TARGET MINUTES | tools/fuzz.sh --summary" >&2
   exit 2
 fi
 target=$1 minutes=$2
