@@ -186,3 +186,16 @@ def test_a_held_track_keeps_its_last_cells_where_it_now_is():
     pic = core.perceive({}, VehicleState(8 * DT, 8, speed_mps=5.0), 8 * DT)
     held = {tuple(np.round(c + [0.5, 0.0], 2)) for c in pic.cells_xy}
     assert pic.objects and pic.objects[0].coasting and held == seen
+
+
+def test_the_sectors_for_obstacle_distance_carry_only_confirmed_tracks():
+    """With tracks, OBSTACLE_DISTANCE / FG_ObstacleSectors are built from the confirmed
+    tracks' cells: a cluster not (yet) confirmed is not sent as an obstacle."""
+    core = DecisionCore(tracks_cfg())
+    seen = []
+    for k in range(8):
+        pic = core.perceive({"stereo": Detections(points_xy=blob(9.05, 0.05))},
+                            VehicleState(k * DT, k), k * DT)
+        seen.append((bool(pic.objects), any(s.distance_m for s in pic.verdict.sectors)))
+    assert seen[0] == (False, False) and seen[-1] == (True, True)
+    assert all(a == b for a, b in seen)
