@@ -623,9 +623,21 @@ def init_ray(workers: int, address: str | None = None, object_store_mb: int = 20
                                 f"{exc.__cause__ or 'no more detail'})".splitlines()[0]
                                 ) from None
         return
+    # Ray's own processes (GCS, raylet) inherit this process's priority; under `nice -n 10`
+    # on a loaded host they miss their start-up deadline. They start at normal priority when
+    # we may (root), the drives still run at ours (_ray_drive).
+    saved = os.getpriority(os.PRIO_PROCESS, 0)
     for k in range(attempts):
         try:
-            ray.init(num_cpus=workers, object_store_memory=object_store_mb * 2**20, **kw)
+            try:
+                if saved > 0:
+                    os.setpriority(os.PRIO_PROCESS, 0, 0)
+            except OSError:
+                pass
+            try:
+                ray.init(num_cpus=workers, object_store_memory=object_store_mb * 2**20, **kw)
+            finally:
+                os.setpriority(os.PRIO_PROCESS, 0, saved)
             return
         except Exception as exc:                 # Ray raises a bare Exception for this
             if "timed out during startup" not in str(exc):
