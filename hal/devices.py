@@ -66,7 +66,14 @@ class Device(ABC, Generic[T]):
         self._closed = True
         self._stop_evt.set()
         if self._thread is not None and self._thread is not threading.current_thread():
+            # every _acquire_once returns within ~0.1 s once _stop_evt is set; only a starved
+            # machine takes longer, and closing the connection under a running thread is what
+            # printed "I/O operation on closed file" from a link thread after its test ended
             self._thread.join(timeout=2.0)
+            if self._thread.is_alive():
+                log.warning("%s: acquisition thread still running 2 s after close(); waiting",
+                            self.name)
+                self._thread.join(timeout=10.0)
         try:
             if self._opened:
                 self._close()
