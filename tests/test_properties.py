@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from appliance.config import GateConfig, GridConfig
@@ -261,3 +261,66 @@ def test_tracking_regression_points_all_off_the_grid():
     tr = _tracker()
     det = {"laser": Detections(points_xy=np.array([[GRID.x_max_m, 0.0], [-50.0, 3.0]]))}
     assert tr.update(det, None, 10 * S) == []
+
+
+# ---- the loop: stale sources and failed sends ------------------------------------------------
+@st.composite
+def loop_steps(draw):
+    return (draw(st.one_of(st.just(100_000_000), st.just(100_000_000), st.integers(1, 400_000_000),
+                           st.integers(3600 * S, 2 * 3600 * S))),
+            draw(st.sampled_from(["ok", "ok", "ok", "silent", "aged", "raise"])),
+            draw(st.sampled_from([False, False, False, True])),        # the send fails
+            draw(st.sampled_from([False, False, False, True])),        # the link goes silent
+            draw(st.one_of(st.none(), st.none(), st.floats(3.0, 25.0))))  # an obstacle ahead
+
+
+CALM = (100_000_000, "ok", False, False, None)
+
+
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(steps=st.lists(loop_steps(), min_size=1, max_size=40))
+# at least these reach CLEAR and SLOW, so the checks on them run whatever hypothesis draws
+@example(steps=[CALM] * 6 + [(100_000_000, "silent", False, False, None)] * 4 + [CALM] * 6)
+@example(steps=[CALM] * 6 + [(100_000_000, "ok", False, False, 8.0)] * 4
+         + [(100_000_000, "ok", True, False, None)] * 2 + [CALM] * 6)
+def test_loop_never_clear_while_a_source_is_stale_or_a_send_failed(steps):
+    """The whole loop (laser pipeline, grid, zones, gate, links) over arbitrary cable-outs,
+    aged data, driver exceptions, refused sends, a silent vehicle link and clock jumps: no
+    CLEAR or SLOW goes out in a cycle whose laser or link data is older than its timeout, whose
+    laser driver just raised, or after a send that did not go out."""
+    from appliance.config import Config, GateConfig
+    from appliance.loop import ApplianceLoop
+    from appliance.perception import make_pipeline
+    from hal import ManualClock
+    from tests.fakes import HandLaser, HandLink
+    clock = ManualClock(10**9)
+    cfg = Config(gate=GateConfig(hold_off_s=0.3), grid=GridConfig(occupied_at=1.0))
+    laser, link = HandLaser("laser", clock), HandLink("link", clock)
+    loop = ApplianceLoop(cfg, clock, {"laser": laser, "link": link},
+                         [make_pipeline("laser", cfg)])
+    laser_stamp = link_stamp = None
+    prev_sent = None
+    for dt, mode, fail, silent, obstacle in steps:
+        clock.advance(dt)
+        now = clock.now_ns()
+        laser.silent = mode == "silent"
+        laser.age_s = 0.4 if mode == "aged" else 0.0
+        laser.raise_on_service = RuntimeError("driver bug") if mode == "raise" else None
+        laser.clear()
+        if obstacle is not None:
+            laser.put_obstacle(obstacle, 0.0)
+        link.fail, link.silent = fail, silent
+        out = loop.cycle().output
+        if mode in ("ok", "aged"):
+            laser_stamp = now - int(laser.age_s * 1e9)
+        if not silent:
+            link_stamp = now
+        fresh = (laser_stamp is not None and now - laser_stamp <= laser.timeout_s * 1e9
+                 and link_stamp is not None and now - link_stamp <= link.timeout_s * 1e9)
+        if out.state is not GateState.STOP:
+            assert fresh, (out, mode, silent)
+            assert mode != "raise", out
+            assert prev_sent is True, out                  # the last message went out
+        else:
+            assert out.reason.strip()
+        prev_sent = not fail
