@@ -103,16 +103,41 @@ def test_console_serves_page_status_grid_and_snapshot(tmp_path):
         get(url, timeout=2)
 
 
+def _real_image_run(path, frames):
+    """A run folder of the Middlebury 'aloe' pair (tests/data/real, its licence beside it) as
+    a forward camera, and a laser that sees nothing: cheap to make, real pixels."""
+    import cv2
+    import numpy as np
+    from pathlib import Path
+    from drivers.runfolder import RunWriter
+    from hal.types import (LaserGeometry, LaserScan, Mount, PinholeCalibration,
+                           StereoCalibration, StereoFrame)
+    real = Path(__file__).parent / "data" / "real" / "middlebury_aloe"
+    left, right = (cv2.imread(str(real / n)) for n in ("aloeL.jpg", "aloeR.jpg"))
+    h, w = left.shape[:2]
+    cal = StereoCalibration(camera=PinholeCalibration(w, h, 0.8 * w, 0.8 * w, w / 2, h / 2),
+                            baseline_m=0.3, mount=Mount(x_m=1.2, z_m=1.5, pitch_deg=15.0))
+    geom = LaserGeometry(angle_min_deg=-135.0, angle_step_deg=0.5, beams=541,
+                         range_max_m=50.0, mount=Mount(x_m=1.3, z_m=0.7))
+    with RunWriter(path, "aloe", stereo=cal, laser=geom) as wr:
+        for i in range(frames):
+            t = i * 100_000_000
+            wr.write_frame(i, t, stereo=StereoFrame(stamp_ns=t, seq=i, left=left, right=right,
+                                                    calib=cal),
+                           laser=LaserScan(stamp_ns=t, seq=i, geometry=geom,
+                                           ranges_m=np.full(541, np.nan, np.float32)))
+    return path
+
+
 def test_camera_view_has_the_pipelines_drawing_and_tracks(tmp_path):
-    """A replay of a short run with the RGB-D camera (laser pipeline: the picture, not the
+    """A replay of a short run of a real stereo pair (laser pipeline: the picture, not the
     perception, is under test): the camera view is served, and a track is drawn on it and on
     the grid."""
     import cv2
     import numpy as np
     from appliance.console.views import camera_view, grid_view
     from appliance.daemon import replay_config
-    from drivers.sim.record import write_sim_run
-    run = write_sim_run("stubble-day", 4, tmp_path / "run", sensors=("laser", "rgbd"))
+    run = _real_image_run(tmp_path / "run", 4)
     cfg = dataclasses.replace(default_config(), console=ConsoleConfig(listen="127.0.0.1:0"))
     d = Daemon(replay_config(cfg, str(run)), mode="replay", replay_path=str(run), pace=0.0,
                status_socket=str(tmp_path / "s.sock"))
@@ -227,6 +252,9 @@ def test_entering_stop_keeps_a_picture_of_that_stop(tmp_path):
         assert hit
         code, h, img = get(d.console.console.url + hit[-1]["image"].lstrip("/"))
         assert code == 200 and img[:2] == b"\xff\xd8"
+        # a kept stop holds its pictures, not the cycle's frames (memory stays bounded)
+        assert all(v.res is None and v.evidence is None and v.grid_jpeg
+                   for v in d.console.tap.stops)
     finally:
         d.shutdown()
 

@@ -12,6 +12,7 @@ resizes and encodes, so the loop thread keeps running meanwhile.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -31,8 +32,8 @@ class View:
     stamp_ns: int
     state: str
     reason: str
-    res: object                     # the CycleResult
-    evidence: np.ndarray            # copy of the grid's evidence at that cycle
+    res: object                     # the CycleResult (None in the kept stops)
+    evidence: np.ndarray | None     # copy of the grid's evidence at that cycle
     tracks: list = field(default_factory=list)
     camera_jpeg: bytes | None = None
     grid_jpeg: bytes = b""
@@ -99,7 +100,9 @@ class FrameTap:
             if stop_item is not None:
                 v = self._render_safe(stop_item)
                 if v is not None:
-                    self.stops.append(v)
+                    # kept: the pictures and the reason, not the cycle's frames (10 stereo
+                    # pairs would hold ~80 MB)
+                    self.stops.append(dataclasses.replace(v, res=None, evidence=None))
                     if item is stop_item:
                         self._publish(v)
                         continue
