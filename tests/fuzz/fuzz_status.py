@@ -3,13 +3,14 @@
 The input is what a local client writes on the socket. It goes through the server's request
 reading rules (first line, at most MAX_REQUEST + 1 bytes) into ``StatusServer.answer`` with a
 real daemon behind it (the simulated box, started, three cycles run, so ``snapshot`` has a
-picture): ``status``, ``snapshot``, ``selftest``, ``record SECONDS PATH``, ``record-status``
+picture; then shut down, so no device thread runs behind the fuzzer): ``status``, ``snapshot``, ``selftest``, ``record SECONDS PATH``, ``record-status``
 and anything else. ``answer`` must return bytes for every input (a PNG for a snapshot, else
 one JSON document) and never raise. ``record`` jobs are dropped after each input and the
 loop does not run again, so no recording is written anywhere. The real socket (slow,
 oversized, many clients, a running daemon) is tests/test_status_socket.py."""
 from __future__ import annotations
 
+import dataclasses
 import json
 
 from appliance.config import default_config
@@ -26,9 +27,15 @@ def setup():
     global _server, _daemon
     if _server is not None:
         return _server
-    _daemon = Daemon(sim_config(default_config()), mode="sim", pace=0.0, serve_status=False)
+    cfg = sim_config(default_config())
+    if hasattr(cfg, "console"):           # no web console on a port for this
+        cfg = dataclasses.replace(cfg, console=dataclasses.replace(cfg.console, listen=""))
+    _daemon = Daemon(cfg, mode="sim", pace=0.0, serve_status=False)
     _daemon.start()
     _daemon.run(max_cycles=3)
+    # its devices and threads stop; what answers requests (the last cycle, the status, the
+    # handler) stays, and nothing keeps a CPU busy behind the fuzzer
+    _daemon.shutdown()
     _server = StatusServer(str(scratch_dir("status") / "status.sock"), _daemon.status,
                            _daemon.handle)
     return _server
