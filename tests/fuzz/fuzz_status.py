@@ -4,8 +4,9 @@ The input is what a local client writes on the socket. It goes through the serve
 reading rules (first line, at most MAX_REQUEST + 1 bytes) into ``StatusServer.answer`` with a
 real daemon behind it (the simulated box, started, three cycles run, so ``snapshot`` has a
 picture; then shut down, so no device thread runs behind the fuzzer): ``status``,
-``snapshot``, ``selftest``, ``record SECONDS PATH``, ``record-status`` and anything else. ``answer`` must return bytes for every input (a PNG for a snapshot, else
-one JSON document) and never raise. ``record`` jobs are dropped after each input and the
+``snapshot``, ``selftest``, ``record SECONDS PATH``, ``record-status`` and anything else.
+``answer`` must return bytes for every input (a PNG for a snapshot, else one JSON document)
+and never raise. ``record`` jobs are dropped after each input and the
 loop does not run again, so no recording is written anywhere. The real socket (slow,
 oversized, many clients, a running daemon) is tests/test_status_socket.py."""
 from __future__ import annotations
