@@ -162,6 +162,10 @@ def format_status(doc: dict) -> str:
     t = doc.get("timing_ms", {}).get("cycle", {})
     lines.append(f"loop    last {t.get('last')} ms  p50 {t.get('p50')} ms  p99 {t.get('p99')} ms"
                  f"  overruns {doc.get('overruns')}  skipped {doc.get('skipped')}")
+    views = doc.get("console") or {}
+    urls = [f"{k} {v['url']}" for k, v in views.items() if isinstance(v, dict) and v.get("url")]
+    if urls or views.get("errors"):
+        lines.append("views   " + "   ".join(urls + [f"({e})" for e in views.get("errors", [])]))
     lines.append("devices")
     for n, h in doc.get("devices", {}).items():
         age = "-" if h.get("age_s") is None else f"{h['age_s']:.2f} s"

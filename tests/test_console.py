@@ -89,6 +89,8 @@ def test_console_serves_page_status_grid_and_snapshot(tmp_path):
         assert set(doc) == set(sock)
         assert doc["state"] == sock["state"] and doc["devices"].keys() == sock["devices"].keys()
         assert doc["devices"]["laser"]["state"] == "ok"
+        from appliance.cli import format_status               # `fieldguard status` names it
+        assert f"console {url}" in format_status(sock)
         code, h, body = get(url + "api/grid.jpg")
         assert code == 200 and h["Content-Type"] == "image/jpeg" and body[:2] == b"\xff\xd8"
         code, _, body = get(url + "api/view.jpg")       # laser only: no camera to show
