@@ -483,3 +483,31 @@ def test_elas_on_short_boxes_does_not_crash_the_process(rows):
                        cwd=Path(__file__).resolve().parents[1], timeout=60)
     assert r.returncode == 0, r.stderr[-500:]
     assert r.stdout.split()[-2] == "ok" and int(r.stdout.split()[-1]) > 0
+
+
+def test_pad_left_matches_the_leftmost_columns():
+    """OpenCV leaves the leftmost num_disparities columns without disparity; pad_left matches
+    them over the disparities the right image can hold (issue #14: a person 4 m to the left
+    at 11 m stood in that blind strip)."""
+    from appliance.perception.stereo import StereoConfig, disparity_regions, make_matcher
+    rng = np.random.default_rng(0)
+    tex = cv2.GaussianBlur((rng.uniform(0, 255, (120, 400)) > 128).astype(np.uint8) * 255,
+                           (3, 3), 0)
+    d_true = 20
+    left = np.ascontiguousarray(tex[:, 60:360])
+    right = np.ascontiguousarray(tex[:, 60 + d_true:360 + d_true])
+    left, right = (cv2.cvtColor(x, cv2.COLOR_GRAY2BGR) for x in (left, right))
+    m = make_matcher(StereoConfig(matcher="sgbm", num_disparities=64), 500.0, 0.1)
+    H, W = left.shape[:2]
+    plain, _ = disparity_regions(m, left, right, [(0, 0, W, H)])
+    padded, work = disparity_regions(m, left, right, [(0, 0, W, H)], pad_left=True)
+    strip = slice(10, 110), slice(d_true + 4, 64)
+    assert not (plain[strip] > 0).any()                          # blind
+    ok = np.abs(padded[strip] - d_true) <= 1.0
+    assert ok.mean() > 0.9
+    assert not (padded > np.arange(W)[None, :]).any()            # never off the right image
+    np.testing.assert_allclose(padded[:, 70:], plain[:, 70:], atol=1.0)
+    # a box with its own range near the edge too
+    boxed, _ = disparity_regions(m, left, right, [(0, 0, 80, H)], ranges=[(8, 32)],
+                                 pad_left=True)
+    assert (np.abs(boxed[10:110, 30:64] - d_true) <= 1.0).mean() > 0.9

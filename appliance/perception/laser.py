@@ -16,6 +16,7 @@ from appliance.schema import _f
 from hal.types import rotation_rpy
 
 from .base import Detections, Pipeline, SensorInputs
+from .candidates import cluster_candidates
 
 
 @dataclass(frozen=True)
@@ -49,10 +50,16 @@ class LaserPipeline(Pipeline):
             pts = local @ rot.T + m.position
             keep = pts[:, 2] >= o.min_height_m
             pts = pts[keep]
+            z = pts[:, 2]
         else:
             # the paper's assumption: the scan plane is parallel to the ground (mount yaw only)
             c, s = np.cos(np.radians(m.yaw_deg)), np.sin(np.radians(m.yaw_deg))
             pts = np.stack([m.x_m + c * local[:, 0] - s * local[:, 1],
                             m.y_m + s * local[:, 0] + c * local[:, 1]], axis=1)
-        return Detections(points_xy=pts[:, :2].astype(np.float32),
-                          debug={"returns": int(ok.sum()), "beams": geo.beams})
+            z = np.full(len(pts), m.z_m)
+        # a planar scan sees one height (the hit's, or the mount's): no contact claim beyond it
+        cands = cluster_candidates(pts[:, :2], z, None, base_sources=("laser",),
+                                   pipeline=self.name, min_points=2, contact_m=np.inf)
+        return Detections(points_xy=pts[:, :2].astype(np.float32), candidates=cands,
+                          debug={"returns": int(ok.sum()), "beams": geo.beams,
+                                 "candidates": len(cands)})

@@ -431,6 +431,14 @@ class ParzenModel:
         tree = cKDTree(x, leafsize=32, balanced_tree=False, compact_nodes=False) if len(x) else None
         self._snap = _Snapshot(x, w, float(w.sum()), tree, s.updates + 1)
 
+    def load(self, x: np.ndarray, w: np.ndarray, updates: int) -> None:
+        """Replace the samples (a saved model); the tree is rebuilt."""
+        from scipy.spatial import cKDTree
+        x = np.ascontiguousarray(x, np.float32).reshape(-1, self.dim)
+        w = np.asarray(w, np.float64).reshape(-1)
+        tree = cKDTree(x, leafsize=32, balanced_tree=False, compact_nodes=False) if len(x) else None
+        self._snap = _Snapshot(x, w, float(w.sum()), tree, int(updates))
+
     def max_size(self, samples_per_update: int) -> int:
         """The most samples the model can ever hold when each update adds at most
         ``samples_per_update``: the batches younger than the lifetime of a lambda-weighted
@@ -610,19 +618,29 @@ class NoveltyDetector:
         mask = dilate_cells(mask, self.o.dilate_cells) & valid
         return NoveltyResult(score, raw, mask, valid, x, A, self.model.empty, cell)
 
+    @property
+    def first_sent(self) -> bool:
+        """True once the first update has been handed over (or a saved model was loaded)."""
+        return self._first_sent
+
     def learn(self, result: NoveltyResult, exclude: np.ndarray | None = None,
-              force: bool = False) -> bool:
+              force: bool = False, first_exclude: np.ndarray | None = None) -> bool:
         """Count a frame; on the first frame and every ``update_every_frames`` hand its valid
         cells (minus ``exclude``, cells near obstacles) to the background update. Returns True
-        when samples were handed over."""
+        when samples were handed over.
+
+        The first update ignores ``exclude`` (the paper's model "fully initialised at
+        start-up": an empty model calls everything novel, so stereo noise near the ground
+        would otherwise keep those cells out of the model for good) and leaves out only
+        ``first_exclude``: what the boot check (full-frame stereo, the learned cue) vouches
+        stands above the ground (issue #14: never learn a person standing ahead at boot)."""
         self.frames += 1
         first = not self._first_sent
         if not (first or force or self.frames % self.o.update_every_frames == 0):
             return False
         keep = result.valid.copy()
-        # the first update learns the whole first frame (the paper's model "fully initialised
-        # at start-up"); an empty model calls everything novel, so stereo noise near the
-        # ground would otherwise keep those cells out of the model for good
+        if first and first_exclude is not None:
+            keep &= ~first_exclude
         if exclude is not None and not first:
             keep &= ~exclude
         samples = result.descriptors[keep]
@@ -637,6 +655,48 @@ class NoveltyDetector:
 
     def wait_idle(self, timeout: float = 10.0) -> bool:
         return True if self.updater is None else self.updater.wait_idle(timeout)
+
+    # ---- persistence (the file itself is appliance.novelty_store's: perception does no I/O)
+    STATE_VERSION = 1
+
+    def fingerprint(self) -> dict:
+        """What a saved model must match to be this detector's: the descriptor's definition
+        and the kernel (a model of other units is a foreign model)."""
+        o = self.o
+        return {"dim": D, "descriptor_scale": [float(v) for v in self.scale],
+                "sigma": float(o.sigma), "cell_px": int(o.cell_px),
+                "descriptor_width_px": int(getattr(o, "descriptor_width_px", 0))}
+
+    def export_state(self) -> dict:
+        """The model as plain arrays and numbers (None while it is empty)."""
+        x, w = self.model.samples()
+        if len(w) == 0:
+            return None
+        return {"version": self.STATE_VERSION, "fingerprint": self.fingerprint(),
+                "x": np.array(x, np.float32), "w": np.array(w, np.float64),
+                "updates": int(self.model.updates)}
+
+    def import_state(self, state: dict) -> None:
+        """Take a saved model (from :meth:`export_state`). Raises ValueError naming what does
+        not fit (version, fingerprint, shapes, values); the detector is unchanged then."""
+        if not isinstance(state, dict):
+            raise ValueError("not a novelty model")
+        if state.get("version") != self.STATE_VERSION:
+            raise ValueError(f"model version {state.get('version')!r}, this build reads "
+                             f"{self.STATE_VERSION}")
+        fp = state.get("fingerprint")
+        if fp != self.fingerprint():
+            raise ValueError(f"model made with other settings ({fp}, here "
+                             f"{self.fingerprint()})")
+        x = np.asarray(state.get("x"))
+        w = np.asarray(state.get("w"))
+        if x.ndim != 2 or x.shape[1] != D or w.shape != (len(x),) or len(x) == 0:
+            raise ValueError(f"model arrays of shapes {x.shape} and {w.shape}")
+        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(w)) and np.all(w > 0)):
+            raise ValueError("model holds non-finite samples or non-positive weights")
+        updates = int(state.get("updates", 1))
+        self.model.load(x.astype(np.float32), w.astype(np.float64), max(1, updates))
+        self._first_sent = True
 
     def close(self):
         if self.updater is not None:

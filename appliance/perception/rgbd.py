@@ -36,6 +36,7 @@ import numpy as np
 from appliance.schema import _f
 
 from .base import Detections, Pipeline, SensorInputs
+from .candidates import cluster_candidates
 from .cue import CueOptions, LearnedCue
 from .rgbd_classes import RgbdClassModel
 from .rgbd_colour import COLOUR_SPACES, ColourClassifier, colour_features
@@ -163,6 +164,8 @@ class RgbdResult:
     groups_raised: int = 0
     learned_obstacles: np.ndarray | None = None
     groups_learned: int = 0
+    hole_points: int = 0          # the last ``hole_points`` of points_xy are the holes'
+    projected: np.ndarray | None = None   # the obstacle pixels that went to 3-D
 
 
 class RgbdPipeline(Pipeline):
@@ -204,7 +207,9 @@ class RgbdPipeline(Pipeline):
     # ------------------------------------------------------------------------------------------
     def process(self, inputs: SensorInputs) -> Detections:
         r = self.analyse(inputs, detail=False)
-        return Detections(points_xy=r.points_xy, debug={
+        cands = self._candidates(inputs, r)
+        return Detections(points_xy=r.points_xy, candidates=cands, debug={
+            "candidates": len(cands),
             "suspected_px": int(r.suspected.sum()), "obstacle_px": int(r.obstacles.sum()),
             "groups_colour": r.groups_colour, "groups_texture": r.groups_texture,
             "groups_holes": r.groups_holes, "groups_raised": r.groups_raised,
@@ -213,6 +218,49 @@ class RgbdPipeline(Pipeline):
 
     def notes(self) -> dict:
         return self.cue.notes()
+
+    def _candidates(self, inputs: SensorInputs, r: RgbdResult) -> tuple:
+        """The frame's obstacle groups as candidates (issue #14): the obstacle pixels (every
+        ``project_stride_px``-th) in 3-D, height above the ground plane under the mount
+        (level ground), each point flagged with the cues whose mask holds it; depth holes
+        (no 3-D but their contact line) are candidates of their own seen by colour. The
+        pixels are those that went to points_xy (after the occlusion filter)."""
+        o: RgbdPipelineConfig = self.options
+        fr = inputs.rgbd
+        cam, mount = fr.calib.camera, fr.calib.mount
+        st = max(1, o.project_stride_px)
+        geo = r.projected if r.projected is not None else r.obstacles
+        v, u = np.nonzero(geo[::st, ::st])
+        v, u = v * st, u * st
+        z = np.asarray(fr.depth_m, np.float32)[v, u]
+        lo, hi = o.min_range_m, o.max_range_m
+        ok = (z >= lo) & (z <= hi)
+        v, u, z = v[ok], u[ok], z[ok]
+        out: tuple = ()
+        if len(z):
+            x = (u - np.float32(cam.cx)) / np.float32(cam.fx) * z
+            y = (v - np.float32(cam.cy)) / np.float32(cam.fy) * z
+            p = np.stack([x, y, z], axis=1).astype(np.float64)
+            pv = p @ mount.camera_to_vehicle().T + mount.position
+            flags = {}
+            for name, m in (("colour", r.colour_obstacles), ("texture", r.texture_obstacles),
+                            ("cue", r.learned_obstacles), ("geometry", r.raised_obstacles)):
+                if m is not None:
+                    flags[name] = m[v, u]
+            # every group stood out of the depth by its slope: geometry is the base source
+            out = cluster_candidates(pv[:, :2], pv[:, 2], None, flags,
+                                     base_sources=("geometry",), pipeline=self.name,
+                                     cell_m=0.1, min_points=5, contact_m=0.3)
+        if r.hole_obstacles is not None and r.groups_holes:
+            # the hole points are the last ones added to points_xy (their contact line)
+            n_geo = len(r.points_xy) - r.hole_points
+            hp = r.points_xy[n_geo:]
+            if len(hp):
+                out = tuple(out) + cluster_candidates(hp, np.zeros(len(hp)), None,
+                                                      base_sources=("colour",),
+                                                      pipeline=self.name, cell_m=0.1,
+                                                      min_points=2)
+        return out
 
     def analyse(self, inputs: SensorInputs, detail: bool = True) -> RgbdResult:
         """One frame, every intermediate map in the result; ``detail=False`` (process()) skips
@@ -297,15 +345,17 @@ class RgbdPipeline(Pipeline):
         # our addition: shiny surfaces return no depth at all
         hole_obs = None
         n_holes = 0
+        n_hole_pts = 0
         if o.holes:
             hole_obs, n_holes, hpts = self._holes(color, depth, surface, cam, mount, pitch, lo, hi,
                                                   cfull)
             if len(hpts):
                 pts = np.concatenate([pts, hpts])
+                n_hole_pts = len(hpts)
             obs = obs | hole_obs
         return RgbdResult(slope, sus, surface, cmap, tmap, col_obs, tex_obs, hole_obs, obs,
                           n_col, n_tex, n_holes, pts, d.raised, d.n_raised, d.learned,
-                          d.n_learned)
+                          d.n_learned, n_hole_pts, proj)
 
     @staticmethod
     def _depth_trim(mask: np.ndarray, depth: np.ndarray, span_m: float) -> np.ndarray:

@@ -29,6 +29,7 @@ import numpy as np
 from appliance.schema import _f
 
 from .base import Detections, Pipeline, SensorInputs
+from .candidates import cluster_candidates
 
 MATCHERS = ("bm", "sgbm", "elas")
 
@@ -58,6 +59,33 @@ class StereoConfig:
     match_width_px: int = _f(0, lo=0, hi=16384,
                              doc="dense matching on images at most this wide: wider frames are "
                                  "matched at 1/2, 1/4 ... resolution; 0 = native resolution")
+    # ---- issue #14's front end (beyond the paper; each stage can be switched off) ----------
+    ground_fit: bool = _f(False, doc="height above the ground fitted every frame to the "
+                                     "points' low envelope (perception/ground.py) instead of "
+                                     "above the level plane z = 0 (paper)")
+    ground_max_range_m: float = _f(25.0, lo=3.0, hi=200.0,
+                                   doc="ground_fit: points up to this far ahead carry the fit")
+    sky_far_m: float = _f(0.0, lo=0.0, hi=200.0,
+                          doc="points farther than this and higher above the ground than the "
+                              "camera are the sky or the skyline, not obstacles (0 = off)")
+    dark_level: float = _f(0.0, lo=0.0, hi=255.0,
+                           doc="no disparity where the left image's 7x7 mean grey level is "
+                               "below this (a black night sky or field beyond the strobe: the "
+                               "matcher's disparities there are noise); 0 = off")
+    pad_left: bool = _f(False, doc="match the image's leftmost columns too (a zero-padded "
+                                   "crop; disparities limited to what the right image holds). "
+                                   "Off (paper, OpenCV's default): the leftmost "
+                                   "num_disparities columns have no disparity: at 640x512 and "
+                                   "min_depth_m 3 the left 13 deg of the view are blind")
+    support_min: float = _f(0.0, lo=0.0, hi=1.0,
+                            doc="vertical support: an obstacle point needs this share of the "
+                                "pixels below it down to its foot (where the ground under it "
+                                "is seen) to have its disparity, as a surface standing on the "
+                                "ground does (a mismatch blob in the far stubble does not; an "
+                                "overhang does not either). 0 = off")
+    confidence_px: float = _f(1.0, lo=0.05, hi=16.0,
+                              doc="per-point confidence: exp(-(|d - median 3x3 of d| / this)^2) "
+                                  "(a disparity that disagrees with its neighbours is unsure)")
 
 
 def auto_disparities(o, fx: float, baseline_m: float) -> int:
@@ -238,7 +266,8 @@ def _columns(img: np.ndarray, a: int, b: int) -> np.ndarray:
 def disparity_regions(matcher: Matcher, left: np.ndarray, right: np.ndarray,
                       boxes: list[tuple[int, int, int, int]],
                       ranges: list[tuple[int, int]] | None = None,
-                      parts: list | None = None) -> tuple[np.ndarray, int]:
+                      parts: list | None = None, pad_left: bool = False
+                      ) -> tuple[np.ndarray, int]:
     """Disparity (H, W) float32 computed only inside ``boxes`` (0 elsewhere). Each crop reaches
     the search range further left and the block's margin further out; the returned count is
     the number of pixels matched (crops included).
@@ -251,7 +280,11 @@ def disparity_regions(matcher: Matcher, left: np.ndarray, right: np.ndarray,
 
     ``parts`` (with ``ranges``, from :func:`merge_strips`): per box a list of
     ``(x0, x1, d_min, n)``; in columns ``[x0, x1)`` only disparities in ``[d_min, d_min + n)``
-    are kept (above the lower end as above), as if those columns had been matched alone."""
+    are kept (above the lower end as above), as if those columns had been matched alone.
+
+    ``pad_left``: see the code (the left columns of the image are matched, not left blind:
+    without it the leftmost ``num_disparities`` columns, 22 % of a 640-px frame with 144
+    disparities, have no disparity at all)."""
     H, W = left.shape[:2]
     disp = np.zeros((H, W), np.float32)
     m = matcher.margin
@@ -261,9 +294,13 @@ def disparity_regions(matcher: Matcher, left: np.ndarray, right: np.ndarray,
         if nd <= 0 or x1 <= x0 or y1 <= y0:
             continue
         mt = matcher.with_range(nd)
-        cx0, cx1 = max(0, x0 - nd - m), min(W, x1 + m)
+        # pad_left: a box whose search range reaches past the image's left edge is matched on
+        # a crop padded with zeros there, so its left columns are searched over the
+        # disparities the right image can hold (d <= u) instead of not at all
+        pad = pad_left and x0 - nd - m < 0
+        cx0, cx1 = (x0 - nd - m if pad else max(0, x0 - nd - m)), min(W, x1 + m)
         cy0, cy1 = max(0, y0 - m), min(H, y1 + m)
-        if cx1 - cx0 < nd + 2 * m + 1:               # the matcher needs nd + block columns
+        if not pad and cx1 - cx0 < nd + 2 * m + 1:   # the matcher needs nd + block columns
             cx0 = max(0, cx1 - (nd + 2 * m + 1))
             if cx1 - cx0 < nd + 2 * m + 1:
                 cx1 = min(W, cx0 + nd + 2 * m + 1)
@@ -275,22 +312,34 @@ def disparity_regions(matcher: Matcher, left: np.ndarray, right: np.ndarray,
             cy0 = max(0, cy0 - grow // 2)
             cy1 = min(H, cy0 + rows)
             cy0 = max(0, cy1 - rows)
-        if cx1 - cx0 < nd + cols_extra:
+        if not pad and cx1 - cx0 < nd + cols_extra:
             cx1 = min(W, cx0 + nd + cols_extra)
             cx0 = max(0, cx1 - (nd + cols_extra))
-        lc = np.ascontiguousarray(left[cy0:cy1, cx0:cx1])
+        elif pad and cx1 - cx0 < nd + cols_extra:
+            cx1 = cx0 + nd + cols_extra             # (zeros beyond the right edge too)
+        lc = np.ascontiguousarray(_columns(left[cy0:cy1], cx0, cx1) if pad
+                                  else left[cy0:cy1, cx0:cx1])
         rc = np.ascontiguousarray(_columns(right[cy0:cy1], cx0 - dmin, cx1 - dmin))
         d = mt.compute(lc, rc)
         work += d.size
         cols = np.arange(cx0, cx1)[None, :]
         # a pixel whose search would leave the crop (or the right image) on the left is not
         # trustworthy
-        valid = (cols - cx0 >= nd) if cx0 > 0 else np.ones((1, cx1 - cx0), bool)
-        if dmin > 0:
-            valid = valid & (cols >= dmin + nd)
-            d = np.where(valid & (d >= 1.0), d + np.float32(dmin), np.float32(0.0))
+        if pad:
+            valid = (cols - cx0 >= nd) & (cols >= 0)
+            d = np.where(valid & (d >= (1.0 if dmin > 0 else 0.0)), d + np.float32(dmin),
+                         np.float32(0.0))
+            d[d > cols.astype(np.float32)] = 0.0          # its match would be off the image
         else:
-            d = np.where(valid, d, np.float32(0.0))
+            valid = (cols - cx0 >= nd) if cx0 > 0 else np.ones((1, cx1 - cx0), bool)
+            if dmin > 0:
+                valid = valid & (cols >= dmin + nd)
+                d = np.where(valid & (d >= 1.0), d + np.float32(dmin), np.float32(0.0))
+            else:
+                d = np.where(valid, d, np.float32(0.0))
+        if cx1 > W:
+            d = d[:, :W - cx0]
+            cx1 = W
         sx0, sy0 = x0 - cx0, y0 - cy0
         out = disp[y0:y1, x0:x1]
         out[:] = d[sy0:sy0 + (y1 - y0), sx0:sx0 + (x1 - x0)]
@@ -509,6 +558,89 @@ def height_band(points: np.ndarray, band_min_m: float, band_max_m: float,
         p[:, 0] <= max_range_m)
 
 
+def drop_dark(disp: np.ndarray, left: np.ndarray, level: float, win: int = 7) -> np.ndarray:
+    """``disp`` with 0 wherever the ``win`` x ``win`` mean grey level of ``left`` (the image
+    the disparity is of, BGR or grey) is below ``level`` (in place; returned)."""
+    if level <= 0:
+        return disp
+    g = cv2.cvtColor(left, cv2.COLOR_BGR2GRAY) if left.ndim == 3 else left
+    mu = cv2.blur(g, (win, win))
+    disp[mu < level] = 0.0
+    return disp
+
+
+def vertical_support(disp: np.ndarray, px: np.ndarray, pts: np.ndarray, calib, ground,
+                     samples: int = 8, tol_px: float = 1.5, tol_frac: float = 0.08,
+                     vehicle=None, use_attitude: bool = False) -> np.ndarray:
+    """Per obstacle point (pixels ``px`` (N, 2) of ``disp``, vehicle-frame ``pts`` (N, 3)):
+    the share of ``samples`` pixels of its column between it and its foot (the image row of
+    the ground under it, ``ground`` a GroundModel) whose disparity is within
+    ``max(tol_px, tol_frac d)`` of its own. Pixels with no disparity do not count; fewer than
+    two known samples: 1 (nothing says otherwise)."""
+    n = len(px)
+    if n == 0:
+        return np.zeros(0)
+    cam = calib.camera
+    R = calib.mount.camera_to_vehicle()
+    if use_attitude and vehicle is not None:
+        from hal.types import rotation_rpy
+        R = rotation_rpy(vehicle.roll_rad, vehicle.pitch_rad, 0.0) @ R
+    foot = np.array(pts, np.float64).reshape(-1, 3)
+    foot[:, 2] = ground.z(foot[:, 0], foot[:, 1])
+    q = (foot - calib.mount.position) @ R                  # optical frame (R^T p)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        vf = cam.fy * q[:, 1] / q[:, 2] + cam.cy
+    H, W = disp.shape
+    u = px[:, 0].astype(np.intp)
+    v = px[:, 1].astype(np.float64)
+    vf = np.where(np.isfinite(vf) & (q[:, 2] > 0), vf, v)
+    vf = np.clip(vf, v, H - 1)
+    t = (np.arange(1, samples + 1) / samples)[None, :]
+    rows = np.clip((v[:, None] + (vf - v)[:, None] * t).astype(np.intp), 0, H - 1)
+    d0 = disp[v.astype(np.intp), u][:, None]
+    ds = disp[rows, u[:, None]]
+    known = ds > 0
+    agree = known & (np.abs(ds - d0) <= np.maximum(tol_px, tol_frac * d0))
+    nk = known.sum(axis=1)
+    return np.where(nk >= 2, agree.sum(axis=1) / np.maximum(nk, 1), 1.0)
+
+
+def point_confidence(disp: np.ndarray, px: np.ndarray, scale_px: float) -> np.ndarray:
+    """Per point (pixels ``px`` (N, 2) u, v of ``disp``): exp(-(|d - med3(d)| / scale)^2),
+    med3 the 3x3 median of the disparity (0 = none counts as a neighbour that disagrees)."""
+    if len(px) == 0:
+        return np.zeros(0)
+    med = cv2.medianBlur(np.ascontiguousarray(disp, np.float32), 3)
+    u = px[:, 0].astype(np.intp)
+    v = px[:, 1].astype(np.intp)
+    dev = np.abs(disp[v, u] - med[v, u]) / np.float32(scale_px)
+    return np.exp(-(dev * dev)).astype(np.float64)
+
+
+def local_heights(pts: np.ndarray, o, camera_z_m: float, fit_pts: np.ndarray | None = None):
+    """(heights (N,), ground model) of points (N, 3): above the ground fitted to ``fit_pts``
+    (default ``pts``) with ``ground_fit``, else above z = 0 (paper). With ``sky_far_m`` the
+    points it calls sky get height -inf (never in a band)."""
+    from .ground import GroundModel, fit_ground, horizon_far_mask
+    if getattr(o, "ground_fit", False):
+        src = pts if fit_pts is None else fit_pts
+        g = fit_ground(src, x_max_m=min(o.ground_max_range_m, o.max_range_m))
+    else:
+        g = GroundModel.level()
+    h = g.height(pts)
+    far = getattr(o, "sky_far_m", 0.0)
+    if far > 0 and len(h):
+        h[horizon_far_mask(pts, camera_z_m, far, g)] = -np.inf
+    return h, g
+
+
+def band_mask(pts: np.ndarray, h: np.ndarray, band_min_m: float, band_max_m: float,
+              max_range_m: float) -> np.ndarray:
+    """:func:`height_band` with the heights given (above the local ground)."""
+    p = np.asarray(pts).reshape(-1, 3)
+    return (h >= band_min_m) & (h <= band_max_m) & (p[:, 0] > 0) & (p[:, 0] <= max_range_m)
+
+
 def dedupe_cells(xy: np.ndarray, cell_m: float = 0.1) -> np.ndarray:
     """One point per 0.1 m cell (the grid's resolution): fewer points, same occupied cells.
     The first point of each cell is kept, in input order."""
@@ -560,14 +692,23 @@ class StereoPipeline(Pipeline):
         left, right = downscale(fr.left, k), downscale(fr.right, k)
         m = self.matcher_for(calib)
         H, W = left.shape[:2]
-        disp, _ = disparity_regions(m, left, right, [(0, 0, W, H)])
+        disp, _ = disparity_regions(m, left, right, [(0, 0, W, H)], pad_left=o.pad_left)
+        drop_dark(disp, left, o.dark_level)
         t1 = time.perf_counter()
-        pts, _ = points_from_disparity(disp, calib, None, max(1, o.point_stride // k),
-                                       inputs.vehicle, o.use_attitude)
-        keep = height_band(pts, o.band_min_m, o.band_max_m, o.max_range_m)
+        pts, px = points_from_disparity(disp, calib, None, max(1, o.point_stride // k),
+                                        inputs.vehicle, o.use_attitude)
+        h, ground = local_heights(pts, o, calib.mount.z_m)
+        keep = band_mask(pts, h, o.band_min_m, o.band_max_m, o.max_range_m)
+        if o.support_min > 0 and keep.any():
+            idx = np.flatnonzero(keep)
+            sup = vertical_support(disp, px[idx], pts[idx], calib, ground,
+                                   vehicle=inputs.vehicle, use_attitude=o.use_attitude)
+            keep[idx[sup < o.support_min]] = False
         xy = dedupe_cells(pts[keep, :2])
+        conf = point_confidence(disp, px[keep], o.confidence_px)
+        cands = cluster_candidates(pts[keep, :2], h[keep], conf, pipeline=self.name)
         t2 = time.perf_counter()
-        return Detections(points_xy=xy, debug={
+        return Detections(points_xy=xy, candidates=cands, debug={
             "matcher": o.matcher, "num_disparities": m.nd, "points": int(keep.sum()),
-            "match_factor": k,
+            "match_factor": k, "ground": ground.to_dict(), "candidates": len(cands),
             "ms": {"stereo": 1e3 * (t1 - t0), "points": 1e3 * (t2 - t1)}})

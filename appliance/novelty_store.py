@@ -1,0 +1,127 @@
+"""The novelty model across restarts: a file in the state directory (issue #14).
+
+A stereo-novelty pipeline's background model is what the box has learnt the field looks like;
+keeping it means a restart does not start from an empty model. The file is an ``.npz`` of the
+samples and weights with a JSON header (``magic``, ``version``, the detector's fingerprint:
+descriptor definition and kernel). Reading it never takes the box down: a missing file is a
+fresh start; a corrupt, truncated, foreign (other settings, another program's file) or
+newer-version file is one clear log line and a fresh start. Writing goes to a temporary file
+in the same directory and is renamed over the old one (a crash mid-write leaves the old model).
+
+Where: ``[perception.stereo-novelty] model_state``: "auto" (default) = the service's state
+directory ($STATE_DIRECTORY, set by systemd's ``StateDirectory=``), file
+``novelty-<pipeline>.npz``; "off" = never; anything else = that path.
+
+The boot guard (``boot_guard``) is what makes a fresh start safe; the stored model is not
+trusted more than that: after loading, every update still leaves out the cells near what the
+frame detected.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger("fieldguard.novelty")
+
+MAGIC = "fieldguard-novelty"
+
+
+def state_path(setting: str, pipeline: str, env: dict | None = None) -> Path | None:
+    """The file for ``model_state = setting`` (None = do not persist)."""
+    env = os.environ if env is None else env
+    if setting in ("", "off"):
+        return None
+    if setting == "auto":
+        d = env.get("STATE_DIRECTORY", "").split(":")[0]
+        return Path(d) / f"novelty-{pipeline}.npz" if d else None
+    return Path(setting)
+
+
+def save(path: Path, state: dict) -> None:
+    """Write ``state`` (NoveltyDetector.export_state()) atomically."""
+    meta = {"magic": MAGIC, "version": state["version"], "fingerprint": state["fingerprint"],
+            "updates": int(state["updates"])}
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        np.savez(f, meta=np.array(json.dumps(meta)), x=state["x"], w=state["w"])
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def read(path: Path) -> dict | None:
+    """The state in ``path``, or None (missing: silently; unreadable or not ours: logged)."""
+    path = Path(path)
+    if not path.exists():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if "meta" not in z.files:
+                raise ValueError("not a fieldguard novelty model")
+            meta = json.loads(str(z["meta"]))
+            if not isinstance(meta, dict) or meta.get("magic") != MAGIC:
+                raise ValueError("not a fieldguard novelty model")
+            return {"version": meta.get("version"), "fingerprint": meta.get("fingerprint"),
+                    "updates": meta.get("updates", 1), "x": np.array(z["x"]),
+                    "w": np.array(z["w"])}
+    except Exception as exc:                 # noqa: BLE001 - any bad file is a fresh start
+        log.warning("novelty model %s unreadable (%s): starting with an empty model", path,
+                    exc)
+        return None
+
+
+def _novelty_pipelines(pipelines):
+    for p in pipelines:
+        parts = getattr(p, "parts", None)
+        if parts:
+            yield from _novelty_pipelines(parts)
+        elif hasattr(p, "novelty") and hasattr(p.novelty, "export_state"):
+            yield p
+
+
+def load_into(pipelines, env: dict | None = None) -> list[str]:
+    """Load each stereo-novelty pipeline's saved model; returns what was loaded (for the
+    log). Never raises for a bad file."""
+    done = []
+    for p in _novelty_pipelines(pipelines):
+        path = state_path(getattr(p.options, "model_state", "off"), p.name, env)
+        if path is None:
+            continue
+        state = read(path)
+        if state is None:
+            continue
+        try:
+            p.novelty.import_state(state)
+        except ValueError as exc:
+            log.warning("novelty model %s not used (%s): starting with an empty model", path,
+                        exc)
+            continue
+        log.info("novelty model %s loaded: %d samples", path, p.novelty.model.size)
+        done.append(str(path))
+    return done
+
+
+def save_from(pipelines, env: dict | None = None) -> list[str]:
+    """Save each stereo-novelty pipeline's model (an empty model is not written). A failure
+    to write is logged, never raised (the box is shutting down or running)."""
+    done = []
+    for p in _novelty_pipelines(pipelines):
+        path = state_path(getattr(p.options, "model_state", "off"), p.name, env)
+        if path is None:
+            continue
+        state = p.novelty.export_state()
+        if state is None:
+            continue
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            save(path, state)
+        except Exception as exc:             # noqa: BLE001 - shutting down: log, go on
+            log.warning("novelty model %s not saved: %s", path, exc)
+            continue
+        done.append(str(path))
+    return done

@@ -1,0 +1,95 @@
+"""Obstacle candidates: a frame's obstacle points grouped into objects.
+
+:func:`cluster_candidates` puts the points (vehicle frame x, y; their height above the local
+ground; a per-point confidence; per-point cue flags) on a ground grid of ``cell_m`` cells and
+labels its 8-connected components (a gap of one empty cell still joins: the grid is dilated
+by ``join_cells`` before labelling, the labels read back on the occupied cells only). Each
+component with at least ``min_points`` points is a :class:`~.base.Candidate`:
+
+- footprint: the axis-aligned extent of its points (at least one cell) and its centre;
+- ``height_m``: the 95th percentile of its points' heights above the ground;
+- ``ground_contact``: its lowest points come within ``contact_m`` of the ground (an overhang
+  or a mismatch floating in the air does not);
+- ``points``: its point count; ``confidence``: the mean point confidence times a support
+  term ``1 - exp(-points / support_points)`` (one stray point is not a confident object);
+- ``sources``: the cues of which at least ``source_min_share`` of its points carry the flag
+  (always at least the pipeline's base source).
+
+Pure numpy/OpenCV, no I/O.
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from .base import Candidate
+
+
+def cluster_candidates(xy: np.ndarray, height: np.ndarray | None = None,
+                       confidence: np.ndarray | None = None,
+                       flags: dict[str, np.ndarray] | None = None,
+                       base_sources: tuple[str, ...] = ("geometry",), pipeline: str = "?",
+                       cell_m: float = 0.2, join_cells: int = 1, min_points: int = 3,
+                       contact_m: float = 0.8, support_points: float = 10.0,
+                       source_min_share: float = 0.2, max_range_m: float = 60.0,
+                       max_candidates: int = 64) -> tuple[Candidate, ...]:
+    """Candidates from obstacle points ``xy`` (N, 2); see the module's docstring.
+    ``height`` (N,) above the local ground (None: unknown, height 0 and no contact claim);
+    ``confidence`` (N,) in [0, 1] (None: 1); ``flags``: source name -> bool (N,)."""
+    p = np.asarray(xy, np.float64).reshape(-1, 2)
+    n = len(p)
+    if n == 0:
+        return ()
+    ok = np.all(np.isfinite(p), axis=1) & (np.abs(p[:, 0]) <= max_range_m) & (
+        np.abs(p[:, 1]) <= max_range_m)
+    idx = np.flatnonzero(ok)
+    if len(idx) < min_points:
+        return ()
+    p = p[idx]
+    h = None if height is None else np.asarray(height, np.float64).reshape(-1)[idx]
+    c = np.ones(len(p)) if confidence is None else np.clip(
+        np.asarray(confidence, np.float64).reshape(-1)[idx], 0.0, 1.0)
+    fl = {k: np.asarray(v, bool).reshape(-1)[idx] for k, v in (flags or {}).items()}
+    g = np.floor(p / cell_m).astype(np.int64)
+    g0 = g.min(axis=0)
+    g -= g0 - join_cells
+    H, W = int(g[:, 0].max()) + 1 + join_cells, int(g[:, 1].max()) + 1 + join_cells
+    if H * W > 4_000_000:            # a pathological spread: coarser cells
+        return cluster_candidates(xy, height, confidence, flags, base_sources, pipeline,
+                                  cell_m * 2, join_cells, min_points, contact_m,
+                                  support_points, source_min_share, max_range_m,
+                                  max_candidates)
+    occ = np.zeros((H, W), np.uint8)
+    occ[g[:, 0], g[:, 1]] = 1
+    grown = cv2.dilate(occ, np.ones((2 * join_cells + 1,) * 2, np.uint8)) if join_cells else occ
+    nlab, lab = cv2.connectedComponents(grown, connectivity=8, ltype=cv2.CV_32S)
+    pl = lab[g[:, 0], g[:, 1]]
+    counts = np.bincount(pl, minlength=nlab)
+    out = []
+    order = np.argsort(pl, kind="stable")
+    starts = np.searchsorted(pl[order], np.arange(nlab))
+    for L in np.flatnonzero(counts >= min_points):
+        if L == 0:
+            continue
+        sel = order[starts[L]:starts[L] + counts[L]]
+        q = p[sel]
+        lo, hi = q.min(axis=0), q.max(axis=0)
+        ext = np.maximum(hi - lo, cell_m)
+        k = len(sel)
+        if h is not None:
+            hh = h[sel]
+            top = float(np.percentile(hh, 95))
+            contact = bool(np.percentile(hh, 5) <= contact_m)
+        else:
+            top, contact = 0.0, True
+        conf = float(c[sel].mean()) * (1.0 - float(np.exp(-k / support_points)))
+        src = list(base_sources)
+        for name, f in fl.items():
+            if name not in src and np.count_nonzero(f[sel]) >= source_min_share * k:
+                src.append(name)
+        out.append(Candidate(x_m=float((lo[0] + hi[0]) / 2), y_m=float((lo[1] + hi[1]) / 2),
+                             length_m=float(ext[0]), width_m=float(ext[1]), height_m=top,
+                             points=int(k), confidence=round(conf, 4), sources=tuple(src),
+                             ground_contact=contact, pipeline=pipeline))
+    out.sort(key=lambda cd: -cd.points)
+    return tuple(out[:max_candidates])

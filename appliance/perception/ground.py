@@ -1,0 +1,191 @@
+"""The ground, estimated every frame from the points the sensor sees (stereo or depth).
+
+Height above a level plane is wrong wherever the ground is not that plane: a contour bank, a
+headland slope, and above all a pitching vehicle (1.2 deg of pitch lifts the ground 0.4 m at
+20 m, near the height band's lower edge). :func:`fit_ground` fits a smooth surface
+``z = a + b x + c y + d x^2 + e x y`` (vehicle frame, metres) to the LOW envelope of the points:
+
+1. the points are binned on the ground plane (``x_bin_m`` by ``y_bin_m``) and each bin gives a
+   low percentile of its heights (``percentile``; a 5 cm height histogram per bin, no sort),
+   so an obstacle standing in a bin does not lift it while most of the bin sees the ground;
+2. the surface is fitted to the bins' heights by iteratively re-weighted least squares
+   (Tukey weights, 3 ``robust_m`` after a first wide pass, the bins' weights capped: bins on an obstacle, or a mismatch blob, get weight 0),
+   each bin weighted by the square root of its point count, with a ridge prior that pulls the
+   surface toward the level plane ``z = 0`` (``prior``): with few bins the level plane wins;
+3. what the smooth surface cannot follow (a contour bank's crest) is an along-range profile:
+   each range row's mean residual over its bins that see the ground, at most
+   ``profile_max_m``, smoothed;
+4. a fit that leaves the plausible envelope (more than ``max_dev_m`` + ``max_slope`` x range
+   from level anywhere in the fitted area) is refused and the level plane used instead
+   (``GroundModel.source = "level"``).
+
+:func:`horizon_far_mask` treats the sky and the far horizon as what they are: a point higher
+than the camera and farther than ``far_m`` is the sky or the horizon's skyline (a matcher
+fills the textureless sky with small disparities), not an obstacle; an obstacle near enough to
+matter is seen by its lower part too.
+
+Pure numpy; no I/O.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+_X0 = 10.0                  # feature scaling (x / 10 m): a well-conditioned normal matrix
+
+
+@dataclass(frozen=True)
+class GroundModel:
+    """``z = a + b x + c y + d x^2 + e x y`` (x, y scaled by 10 m), vehicle frame."""
+
+    coef: tuple = (0.0, 0.0, 0.0, 0.0, 0.0)
+    bins: int = 0               # bins that carried the fit (weight > 0.5)
+    source: str = "level"       # "fit" | "level"
+    x_max_m: float = 0.0        # the fitted area's far edge (beyond it: the surface at x_max)
+    profile_x: tuple = ()       # along-range correction: x of each range row's centre ...
+    profile_z: tuple = ()       # ... and the row's residual height (linear in between)
+
+    @staticmethod
+    def level() -> "GroundModel":
+        return GroundModel()
+
+    def z(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        a, b, c, d, e = self.coef
+        if self.source == "level":
+            return np.zeros(np.shape(x))
+        xm = np.minimum(np.asarray(x, np.float64), self.x_max_m)
+        xs = xm / _X0
+        ys = np.asarray(y, np.float64) / _X0
+        z = a + b * xs + c * ys + d * xs * xs + e * xs * ys
+        if self.profile_x:
+            z = z + np.interp(xm, self.profile_x, self.profile_z)
+        return z
+
+    def height(self, pts: np.ndarray) -> np.ndarray:
+        """Height (N,) of points (N, 3) above this ground."""
+        p = np.asarray(pts).reshape(-1, 3)
+        if self.source == "level":
+            return p[:, 2].astype(np.float64, copy=True)
+        return p[:, 2] - self.z(p[:, 0], p[:, 1])
+
+    def pitch_deg(self) -> float:
+        """The ground's mean slope along x over the fitted area's far three quarters, on the
+        vehicle's centre line (positive = rising ahead)."""
+        if self.source == "level" or self.x_max_m <= 0:
+            return 0.0
+        x0, x1 = 0.25 * self.x_max_m, self.x_max_m
+        z0, z1 = self.z(np.array([x0, x1]), np.zeros(2))
+        return float(np.degrees(np.arctan((z1 - z0) / (x1 - x0))))
+
+    def to_dict(self) -> dict:
+        return {"source": self.source, "bins": self.bins,
+                "coef": [round(float(c), 4) for c in self.coef],
+                "pitch_deg": round(self.pitch_deg(), 3)}
+
+
+def _features(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    xs, ys = x / _X0, y / _X0
+    return np.stack([np.ones_like(xs), xs, ys, xs * xs, xs * ys], axis=1)
+
+
+def bin_lows(pts: np.ndarray, x_min_m: float, x_max_m: float, y_half_m: float,
+             x_bin_m: float, y_bin_m: float, percentile: float, min_points: int,
+             z_lo: float = -3.0, z_hi: float = 3.0, z_step: float = 0.05):
+    """Per ground bin with >= ``min_points`` points: (x centre, y centre, low-percentile
+    height, count). The percentile comes from a ``z_step`` histogram of each bin."""
+    p = np.asarray(pts, np.float64).reshape(-1, 3)
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    ok = (x >= x_min_m) & (x < x_max_m) & (np.abs(y) < y_half_m) & (z > z_lo) & (z < z_hi)
+    x, y, z = x[ok], y[ok], z[ok]
+    if len(x) == 0:
+        return (np.zeros(0),) * 4
+    nx = int(np.ceil((x_max_m - x_min_m) / x_bin_m))
+    ny = int(np.ceil(2 * y_half_m / y_bin_m))
+    nz = int(np.ceil((z_hi - z_lo) / z_step))
+    ix = np.minimum(((x - x_min_m) / x_bin_m).astype(np.intp), nx - 1)
+    iy = np.minimum(((y + y_half_m) / y_bin_m).astype(np.intp), ny - 1)
+    iz = np.minimum(((z - z_lo) / z_step).astype(np.intp), nz - 1)
+    b = ix * ny + iy
+    nb = nx * ny
+    counts = np.bincount(b, minlength=nb)
+    sx = np.bincount(b, x, minlength=nb)
+    sy = np.bincount(b, y, minlength=nb)
+    hist = np.bincount(b * nz + iz, minlength=nb * nz).reshape(nb, nz)
+    use = np.flatnonzero(counts >= min_points)
+    if len(use) == 0:
+        return (np.zeros(0),) * 4
+    cum = np.cumsum(hist[use], axis=1)
+    need = np.maximum(1, np.ceil(counts[use] * percentile / 100.0))[:, None]
+    k = np.argmax(cum >= need, axis=1)
+    zl = z_lo + (k + 0.5) * z_step
+    c = counts[use].astype(np.float64)
+    return sx[use] / c, sy[use] / c, zl, c
+
+
+def fit_ground(pts: np.ndarray, x_min_m: float = 2.0, x_max_m: float = 25.0,
+               y_half_m: float = 8.0, x_bin_m: float = 1.0, y_bin_m: float = 2.0,
+               percentile: float = 30.0, min_points: int = 8, robust_m: float = 0.25,
+               prior: float = 2.0, max_dev_m: float = 0.6, max_slope: float = 0.2,
+               min_bins: int = 6, iterations: int = 4,
+               profile_max_m: float = 0.3) -> GroundModel:
+    """The ground under the points (N, 3), vehicle frame; see the module's docstring."""
+    bx, by, bz, bc = bin_lows(pts, x_min_m, x_max_m, y_half_m, x_bin_m, y_bin_m, percentile,
+                              min_points)
+    if len(bx) < min_bins:
+        return GroundModel.level()
+    A = _features(bx, by)
+    # near bins hold far more points than far ones (and a near obstacle's face more than the
+    # ground around it): the square root of the count, capped at 3x the median's
+    w0 = np.sqrt(np.minimum(bc, 3.0 * np.median(bc)))
+    w0 = w0 / w0.mean()
+    w = w0.copy()
+    reg = prior * np.diag([1.0, 1.0, 1.0, 1.0, 1.0])
+    coef = np.zeros(5)
+    for it in range(iterations):
+        Aw = A * w[:, None]
+        coef = np.linalg.solve(Aw.T @ A + reg, Aw.T @ bz)
+        r = bz - A @ coef
+        # Tukey's biweight, a fixed scale: the bins' heights are good to a few cm where they
+        # see the ground; one on an obstacle is off by its height
+        u = r / (3.0 * robust_m) if it else r / (8.0 * robust_m)
+        w = w0 * np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
+        if w.sum() < 1e-6:
+            return GroundModel.level()
+    used = int(np.count_nonzero(w > 0.5 * w0))
+    if used < min_bins:
+        return GroundModel.level()
+    xm = float(min(x_max_m, bx.max() + x_bin_m / 2))
+    # the along-range profile (what the smooth surface cannot follow: a contour bank's crest,
+    # a headland's edge): per range row, the mean residual of its bins that see the ground,
+    # clipped to +-profile_max_m and smoothed [1 2 1]; a row of fewer than 2 such bins: 0
+    r = bz - A @ coef
+    row = ((bx - x_min_m) / x_bin_m).astype(np.intp)
+    nrow = int(row.max()) + 1
+    good = (w > 0.5 * w0) & (np.abs(r) < 2.0 * robust_m)
+    cnt = np.bincount(row[good], minlength=nrow)
+    sm = np.bincount(row[good], r[good], minlength=nrow)
+    prof = np.where(cnt >= 2, sm / np.maximum(cnt, 1), 0.0)
+    prof = np.clip(prof, -profile_max_m, profile_max_m)
+    if nrow >= 3:
+        pp = np.pad(prof, 1, mode="edge")
+        prof = 0.25 * pp[:-2] + 0.5 * pp[1:-1] + 0.25 * pp[2:]
+    px = x_min_m + (np.arange(nrow) + 0.5) * x_bin_m
+    model = GroundModel(tuple(float(c) for c in coef), used, "fit", xm,
+                        tuple(float(v) for v in px) if profile_max_m > 0 else (),
+                        tuple(float(v) for v in prof) if profile_max_m > 0 else ())
+    # plausibility over the fitted area
+    gx, gy = np.meshgrid(np.linspace(x_min_m, xm, 8), np.linspace(-y_half_m, y_half_m, 5))
+    dev = np.abs(model.z(gx.ravel(), gy.ravel()))
+    if np.any(dev > max_dev_m + max_slope * gx.ravel()):
+        return GroundModel.level()
+    return model
+
+
+def horizon_far_mask(pts: np.ndarray, camera_z_m: float, far_m: float,
+                     ground: GroundModel | None = None) -> np.ndarray:
+    """True for points (N, 3) farther ahead than ``far_m`` and higher above the ground than
+    the camera: the sky and the far skyline (see the module's docstring)."""
+    p = np.asarray(pts).reshape(-1, 3)
+    h = ground.height(p) if ground is not None else p[:, 2]
+    return (p[:, 0] > far_m) & (h > camera_z_m)

@@ -1,0 +1,95 @@
+"""Obstacle candidates from obstacle points (appliance/perception/candidates.py)."""
+import numpy as np
+
+from appliance.perception.candidates import cluster_candidates
+
+
+def _blob(rng, x, y, n, r=0.2, h=(0.5, 1.8)):
+    return (np.stack([x + rng.uniform(-r, r, n), y + rng.uniform(-r, r, n)], axis=1),
+            rng.uniform(*h, n))
+
+
+def test_two_objects_two_candidates_with_their_attributes():
+    rng = np.random.default_rng(0)
+    a, ha = _blob(rng, 10.0, 0.0, 200)
+    b, hb = _blob(rng, 15.0, 3.0, 40, r=0.1, h=(1.6, 2.0))      # floating: no contact
+    xy, h = np.concatenate([a, b]), np.concatenate([ha, hb])
+    conf = np.concatenate([np.full(200, 0.9), np.full(40, 0.5)])
+    cue = np.concatenate([np.zeros(200, bool), np.ones(40, bool)])
+    c = cluster_candidates(xy, h, conf, {"novelty": cue}, pipeline="stereo")
+    assert len(c) == 2
+    big, small = c
+    assert big.points == 200 and small.points == 40
+    assert abs(big.x_m - 10.0) < 0.05 and abs(big.y_m) < 0.05
+    assert 0.3 < big.length_m <= 0.41 and 0.3 < big.width_m <= 0.41
+    assert 1.6 < big.height_m < 1.8
+    assert big.ground_contact and not small.ground_contact
+    assert big.sources == ("geometry",) and small.sources == ("geometry", "novelty")
+    assert big.confidence > small.confidence
+    assert 0.85 < big.confidence <= 0.9
+    assert big.pipeline == "stereo"
+
+
+def test_gap_of_one_cell_joins_and_two_cells_split():
+    xy = np.array([[5.0, 0.0], [5.0, 0.05], [5.0, 0.1],
+                   [5.0, 0.45], [5.0, 0.5], [5.0, 0.55],     # 1 empty 0.2 m cell between
+                   [5.0, 1.5], [5.0, 1.55], [5.0, 1.6]])     # far apart
+    c = cluster_candidates(xy, np.full(9, 1.0), min_points=3)
+    assert sorted(cd.points for cd in c) == [3, 6]
+
+
+def test_stray_points_are_no_candidate_and_bad_values_are_ignored():
+    xy = np.array([[5.0, 0.0], [np.nan, 1.0], [np.inf, 0.0], [8.0, 2.0]])
+    assert cluster_candidates(xy, np.ones(4)) == ()
+    assert cluster_candidates(np.zeros((0, 2))) == ()
+
+
+def test_confidence_grows_with_support():
+    rng = np.random.default_rng(1)
+    few, hf = _blob(rng, 5, 0, 4)
+    many, hm = _blob(rng, 5, 0, 80)
+    assert cluster_candidates(few, hf)[0].confidence < cluster_candidates(many, hm)[0].confidence
+
+
+def test_laser_pipeline_gives_a_candidate_per_object():
+    from appliance.perception import SensorInputs
+    from appliance.perception.laser import LaserPipeline
+    from hal.types import LaserGeometry, LaserScan, Mount
+    geo = LaserGeometry(-45.0, 0.5, 181, 30.0, Mount(x_m=1.0, z_m=0.7))
+    r = np.full(181, np.nan, np.float32)
+    ang = geo.angles_rad()
+    for centre, dist in ((0.0, 8.0), (20.0, 5.0)):               # two posts
+        near = np.abs(np.degrees(ang) - centre) <= 1.5
+        r[near] = dist
+    det = LaserPipeline().process(SensorInputs(0, laser=LaserScan(0, 0, r, geo)))
+    assert len(det.points_xy) == int(np.isfinite(r).sum())
+    c = sorted(det.candidates, key=lambda cd: cd.x_m)
+    assert len(c) == 2 and all(cd.sources == ("laser",) for cd in c)
+    assert abs(c[1].x_m - 9.0) < 0.1 and abs(c[1].y_m) < 0.2
+    assert abs(c[0].x_m - (1.0 + 5.0 * np.cos(np.radians(20)))) < 0.2
+    assert all(cd.height_m == 0.7 and cd.ground_contact for cd in c)
+
+
+def test_rgbd_pipeline_candidates_on_the_simulated_greenhouse():
+    from appliance.perception import SensorInputs, make_pipeline
+    from drivers.sim import SimField
+    f = SimField("greenhouse", seed=1, sensors=("rgbd",))
+    for _ in range(40):                                  # drive until the crate is ~3 m ahead
+        s = f.render(0, 0)
+        crate = [t for t in s.truth if t["class"] == "crate" and t["x_m"] < 4.0]
+        if crate:
+            break
+        f.step(0.5)
+    assert crate
+    p = make_pipeline("rgbd")
+    try:
+        det = p.process(SensorInputs(0, rgbd=s.rgbd, vehicle=s.vehicle))
+    finally:
+        p.close()
+    ob = crate[0]
+    near = [cd for cd in det.candidates if abs(cd.x_m - ob["x_m"]) < 0.6
+            and abs(cd.y_m - ob["y_m"]) < 0.6]
+    assert near, (ob, det.candidates)
+    cd = max(near, key=lambda c: c.points)
+    assert "geometry" in cd.sources and cd.pipeline == "rgbd" and cd.ground_contact
+    assert 0.15 < cd.height_m < ob["height_m"] + 0.2
