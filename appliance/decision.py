@@ -133,7 +133,8 @@ class DecisionCore:
             pic = Picture(grid_cells, assess(grid_cells, speed, self.cfg.zones), speed,
                           grid_cells)
         else:
-            tracks = self.tracker.update(detections, vehicle, now_ns)
+            occ = self.grid.occupied_mask() if self.cfg.tracking.input == "occupied" else None
+            tracks = self.tracker.update(detections, vehicle, now_ns, occ)
             cells = self.tracker.confirmed_cells()
             pic = Picture(cells, assess_tracks(tracks, cells, speed, self.cfg), speed,
                           grid_cells, tracks)

@@ -335,10 +335,20 @@ class _StopTally:
         self.stop_zone_frames = 0
         self.false_stop = []
         self.missed_stop = []
+        self.path_frames = self.path_detected = 0
 
-    def add(self, index: int, stamp_ns: int, state: str, cause: str, truth, stop_rect) -> None:
+    def add(self, index: int, stamp_ns: int, state: str, cause: str, truth, stop_rect,
+            slow_rect=None, cells=None) -> None:
         if truth is None:
             return
+        if slow_rect is not None:     # in the path: the stop and slow zones together
+            path = dict(stop_rect, x_max_m=slow_rect["x_max_m"])
+            for o in truth:
+                if _rect_intersects(o, path):
+                    self.path_frames += 1
+                    if cells is not None and len(cells) and \
+                            footprint_distance(cells, o).min() <= MATCH_M + 1e-9:
+                        self.path_detected += 1
         real = [o for o in truth if _rect_intersects(o, stop_rect)]
         if real:
             self.last_real_ns = stamp_ns
@@ -365,7 +375,12 @@ class _StopTally:
                 "stop_zone_frames": self.stop_zone_frames,
                 "stop_frames": self.stop_frames,
                 "obstacle_stop_frames": self.obstacle_stop_frames,
-                "fault_stop_frames": self.fault_stop_frames}
+                "fault_stop_frames": self.fault_stop_frames,
+                # obstacle-frames whose footprint meets the stop or slow zone, and of those
+                # the detected ones (a cell within 0.5 m), whether the cameras see them or not
+                "path_obstacle_frames": self.path_frames,
+                "path_detected_obstacle_frames": self.path_detected,
+                "path_recall": _ratio(self.path_detected, self.path_frames)}
 
 
 def evaluate_run(path: str | os.PathLike, pipeline: str | None = None, config=None,
@@ -461,7 +476,7 @@ def evaluate_run(path: str | os.PathLike, pipeline: str | None = None, config=No
             agg.add(fr.index, score, ms)
             rects = zone_rects(vehicle.speed_mps if vehicle is not None else 0.0, cfg.zones)
             stops.add(fr.index, fr.stamp_ns, gate_out.state.value, core.gate.cause, truth,
-                      rects[0])
+                      rects[0], rects[1], np.asarray(cells, dtype=np.float64).reshape(-1, 2))
             if sink is not None:
                 sink.write(json.dumps(decision_record(fr.index, fr.stamp_ns, gate_out, picture,
                                                       rects, core.gate.cause),

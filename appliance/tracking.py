@@ -249,9 +249,23 @@ def merge_touching(ms: list[Measurement], gap_m: float) -> list[Measurement]:
     return out
 
 
+def keep_in_mask(points_xy: np.ndarray, mask: np.ndarray, grid: GridConfig) -> np.ndarray:
+    """The points whose fusion-grid cell is set in ``mask`` ([ix, iy], the grid's shape)."""
+    p = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
+    if not len(p):
+        return p
+    ix = np.floor((p[:, 0] - grid.x_min_m) / grid.cell_m).astype(np.int64)
+    iy = np.floor((p[:, 1] - grid.y_min_m) / grid.cell_m).astype(np.int64)
+    ok = (ix >= 0) & (ix < mask.shape[0]) & (iy >= 0) & (iy < mask.shape[1])
+    ok[ok] = mask[ix[ok], iy[ok]]
+    return p[ok]
+
+
 def measurements(detections: dict[str, Detections], grid: GridConfig,
-                 cfg: TrackingConfig) -> list[Measurement]:
-    """This frame's candidates from every pipeline's detections (see the module doc)."""
+                 cfg: TrackingConfig, occupied: np.ndarray | None = None) -> list[Measurement]:
+    """This frame's candidates from every pipeline's detections (see the module doc).
+    ``occupied``: the fusion grid's occupied mask; a point-only pipeline's points count only
+    where the grid is occupied (``[tracking] input = "occupied"``)."""
     given: list[Measurement] = []
     pts: dict[str, tuple[np.ndarray, tuple[str, ...]]] = {}
     for name, det in detections.items():
@@ -260,7 +274,10 @@ def measurements(detections: dict[str, Detections], grid: GridConfig,
         if det.candidates:
             given += [from_candidate(c, grid.cell_m) for c in det.candidates]
         elif len(det.points_xy):
-            pts[name] = (det.points_xy, pipeline_sources(name, det))
+            xy = det.points_xy if occupied is None else keep_in_mask(det.points_xy, occupied,
+                                                                     grid)
+            if len(xy):
+                pts[name] = (xy, pipeline_sources(name, det))
     ms = cluster_points(pts, grid, cfg) if pts else []
     if given:
         ms = merge_touching(ms + given, cfg.cluster_gap_m)
@@ -287,6 +304,7 @@ class Track:
     evidence: dict[str, float] = field(default_factory=dict)   # log-odds per source
     seen_by: set = field(default_factory=set)                  # sources ever seen
     cells_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))   # this frame, vehicle
+    cells_world: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # last seen, world
     points: int = 0
     confidence_in: float = 0.0    # the newest candidate's confidence
     pipelines: tuple[str, ...] = ()
@@ -426,6 +444,7 @@ class Tracker:
             t.evidence[s] = min(ws * cap, t.evidence.get(s, 0.0) + ws * v)
             t.seen_by.add(s)
         t.cells_xy = m.cells_xy
+        t.cells_world = self.to_world(m.cells_xy) - t.state[:2]   # about the track's centre
         t.points = m.points
         t.confidence_in = m.confidence
         t.pipelines = m.pipelines
@@ -459,8 +478,8 @@ class Tracker:
 
     # -- one cycle -------------------------------------------------------------------------
     def update(self, detections: dict[str, Detections], vehicle: VehicleState | None,
-               now_ns: int) -> list[TrackView]:
-        ms = measurements(detections, self.grid, self.cfg)
+               now_ns: int, occupied: np.ndarray | None = None) -> list[TrackView]:
+        ms = measurements(detections, self.grid, self.cfg, occupied)
         return self.update_measurements(ms, vehicle, now_ns)
 
     def update_measurements(self, ms: list[Measurement], vehicle: VehicleState | None,
@@ -560,6 +579,9 @@ class Tracker:
                 continue
             if len(t.cells_xy) and t.last_hit_ns == self.stamp_ns:
                 parts.append(np.asarray(t.cells_xy, dtype=np.float64))
+            elif len(t.cells_world):   # held unseen: its last cells, where it is now
+                c = self.to_vehicle(t.cells_world + t.state[:2])
+                parts.append((np.floor(c / cell) + 0.5) * cell)
             else:
                 p = self.to_vehicle(t.state[None, :2])[0]
                 parts.append(_rect_cells(p[0] - t.length_m / 2, p[0] + t.length_m / 2 - 1e-9,

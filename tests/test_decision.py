@@ -140,3 +140,62 @@ def test_the_loop_decides_on_tracks_with_the_same_core():
     (t,) = st["tracks"]
     assert t["sources"] == ["laser"] and abs(t["x_m"] - 4.0) < 0.2 and t["confirmed"]
     assert link.sent[-1].state is GateState.STOP and "track" in link.sent[-1].reason
+
+
+def test_snapshot_draws_the_tracks_and_status_text_lists_them():
+    from appliance.cli import format_status
+    from appliance.snapshot import TRACK_BGR, compose, grid_panel, track_label
+    cfg = dataclasses.replace(tracks_cfg(), grid=GridConfig(occupied_at=1.0))
+    clock, loop, laser, link = make_loop(cfg)
+    laser.put_obstacle(6.0, 0.0)
+    for _ in range(12):
+        res = loop.cycle()
+        clock.advance(DT)
+    (t,) = [t for t in res.tracks if t.confirmed]
+    assert track_label(t).startswith(f"#{t.id} 6.") and track_label(t).endswith("laser")
+    img = grid_panel(res, loop.grid.evidence, cfg)
+    assert np.any(np.all(img == np.array(TRACK_BGR, np.uint8), axis=2))
+    assert compose(res, loop.grid.evidence, cfg, loop.status()).shape[0] > img.shape[0]
+    text = format_status(loop.status())
+    assert f"track {t.id}" in text and "laser" in text
+
+
+def test_tracker_input_is_the_occupied_grid_by_default_or_every_hit():
+    """input = "occupied": a cell must be hit in consecutive cycles (the grid's rule) before
+    the tracker sees it; "hits": every cell hit this cycle is clustered."""
+    pts = {"stereo": Detections(points_xy=blob(8.05, 3.05))}
+    core = DecisionCore(tracks_cfg())
+    assert core.cfg.tracking.input == "occupied"
+    core.perceive(pts, VehicleState(0, 0), 0)
+    assert core.tracker.tracks == []                  # one hit: not occupied yet
+    core.perceive(pts, VehicleState(DT, 1), DT)
+    assert len(core.tracker.tracks) == 1
+    core = DecisionCore(tracks_cfg(input="hits"))
+    core.perceive(pts, VehicleState(0, 0), 0)
+    assert len(core.tracker.tracks) == 1
+
+
+def test_a_held_track_keeps_its_last_cells_where_it_now_is():
+    core = DecisionCore(tracks_cfg(coast_s=0.5))
+    for k in range(8):
+        pic = core.perceive({"stereo": Detections(points_xy=blob(8.05, 3.05))},
+                            VehicleState(k * DT, k), k * DT)
+    seen = {tuple(np.round(c, 2)) for c in pic.cells_xy}
+    assert len(seen) == 9
+    # unseen now, the vehicle drove 0.5 m: the same cells, 0.5 m nearer
+    pic = core.perceive({}, VehicleState(8 * DT, 8, speed_mps=5.0), 8 * DT)
+    held = {tuple(np.round(c + [0.5, 0.0], 2)) for c in pic.cells_xy}
+    assert pic.objects and pic.objects[0].coasting and held == seen
+
+
+def test_the_sectors_for_obstacle_distance_carry_only_confirmed_tracks():
+    """With tracks, OBSTACLE_DISTANCE / FG_ObstacleSectors are built from the confirmed
+    tracks' cells: a cluster not (yet) confirmed is not sent as an obstacle."""
+    core = DecisionCore(tracks_cfg())
+    seen = []
+    for k in range(8):
+        pic = core.perceive({"stereo": Detections(points_xy=blob(9.05, 0.05))},
+                            VehicleState(k * DT, k), k * DT)
+        seen.append((bool(pic.objects), any(s.distance_m for s in pic.verdict.sectors)))
+    assert seen[0] == (False, False) and seen[-1] == (True, True)
+    assert all(a == b for a, b in seen)
