@@ -260,13 +260,16 @@ DEFAULT_PIPELINES = {"stereo": "stereo-novelty", "rgbd": "rgbd", "laser": "laser
 
 
 def default_pipelines(info: RunInfo, cfg=None, configured: bool = False) -> list[str]:
-    """What ``fieldguard eval RUN`` runs without ``--pipeline``: with a config file, its
-    ``[perception] pipelines`` that the run has the sensors for; without one (or when none of
-    them fits), the box's default perception for each sensor the run has: stereo-novelty for
-    stereo, rgbd for RGB-D, laser for a laser."""
+    """What ``fieldguard eval RUN`` runs without ``--pipeline``: with a config file that sets
+    ``[perception] pipelines`` (to anything but the built-in default, the laser alone), those
+    of them the run has the sensors for; otherwise (or when none of them fits) the box's
+    default perception for each sensor the run has: stereo-novelty for stereo, rgbd for RGB-D,
+    laser for a laser."""
+    from appliance.config import PerceptionConfig
     from appliance.perception import pipeline_class
     have = set(info.sensors) | {"vehicle"}
-    if configured and cfg is not None:
+    if configured and cfg is not None and \
+            tuple(cfg.perception.pipelines) != tuple(PerceptionConfig().pipelines):
         names = []
         for n in cfg.perception.pipelines:
             if n == "fused":

@@ -177,6 +177,9 @@ def test_default_pipelines_follow_the_sensors_and_the_config(tmp_path):
     assert default_pipelines(Info) == ["stereo-novelty", "laser"]
     cfg = parse_config({"perception": {"pipelines": ["stereo", "rgbd"]}})
     assert default_pipelines(Info, cfg, configured=True) == ["stereo"]
+    # a config that leaves the pipelines at the built-in default (laser) gets the run's
+    assert default_pipelines(Info, parse_config({"tracking": {"enabled": True}}),
+                             configured=True) == ["stereo-novelty", "laser"]
     Info.sensors = ("rgbd",)
     assert default_pipelines(Info) == ["rgbd"]
     Info.sensors = ()
