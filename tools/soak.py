@@ -760,6 +760,8 @@ class Soak:
             if not pts:
                 return
             hi = hi if hi > lo else lo + 1
+            pad = (hi - lo) * 0.05                      # off the frame's edges
+            lo, hi = lo - pad, hi + pad
             p = np.array([[X(t), int(H - 40 - (H - 70) * (v - lo) / (hi - lo))] for t, v in pts],
                          np.int32)
             cv2.polylines(img, [p], False, colour, 1)
