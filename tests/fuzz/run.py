@@ -6,7 +6,7 @@ import importlib
 import os
 import sys
 
-from tests.fuzz.common import TARGETS
+from tests.fuzz.common import ROOT, TARGETS
 
 
 def main() -> None:
@@ -23,8 +23,10 @@ def main() -> None:
     # target needs and may import more of it, runs inside the block too)
     # the simulator (drivers.sim) reads no outside bytes, and numba cannot compile its
     # renderer once atheris has rewritten the bytecode
+    sim = ["drivers.sim"] + ["drivers.sim." + p.stem for p in
+                             (ROOT / "drivers" / "sim").glob("*.py") if p.stem != "__init__"]
     with atheris.instrument_imports(include=["hal", "drivers", "appliance", *extra],
-                                    exclude=["drivers.sim"]):
+                                    exclude=sim):        # exact module names
         mod = importlib.import_module(mod_name)
         if hasattr(mod, "setup"):
             mod.setup()
