@@ -53,9 +53,12 @@ def _load_run_config(a):
     return parse_config(data, a.config or "<command line>")
 
 
-# scenes whose sensors the default (laser) pipeline cannot use: `run --sim SCENE` without a
-# --config runs the pipeline the scene is built for
+# scenes whose vehicle and sensors the defaults do not fit: `run --sim SCENE` without a
+# --config runs the pipeline and the zones the scene is built for (the greenhouse sprayer:
+# an RGB-D camera, 1.2 m long, 0.8 m wide between bush rows 1.2 m apart; with the default
+# 2.5 m wide zones the bushes are in the stop zone and it never starts: docs/rgbd.md)
 SCENE_PIPELINES = {"greenhouse": ("rgbd",)}
+SCENE_ZONES = {"greenhouse": {"front_x_m": 1.1, "half_width_m": 0.5}}
 
 
 def all_sensors_simulated(cfg) -> bool:
@@ -77,8 +80,10 @@ def cmd_run(a) -> int:
     if a.sim:
         check_scene(a.sim)
         if not a.config and a.sim in SCENE_PIPELINES:
-            cfg = dataclasses.replace(cfg, perception=dataclasses.replace(
-                cfg.perception, pipelines=SCENE_PIPELINES[a.sim], optional=()))
+            cfg = dataclasses.replace(
+                cfg, perception=dataclasses.replace(cfg.perception,
+                                                    pipelines=SCENE_PIPELINES[a.sim], optional=()),
+                zones=dataclasses.replace(cfg.zones, **SCENE_ZONES.get(a.sim, {})))
     if a.sim is not None:
         cfg, mode = sim_config(cfg, a.sim or None), "sim"
     elif a.replay:
@@ -116,8 +121,39 @@ class _StatusPrinter:
         self.d, self.every_ns = daemon, int(every_s * 1e9)
         self.last_ns = None
         self.last_state = None
+        self._prev = None
+        self.true_stops = self.false_stops = self.obstacle_stops = 0
+        self.fault_stops: dict[str, int] = {}
+
+    def _tally_stop(self, res) -> None:
+        """Each entry into STOP after boot: for an obstacle (true or false, when the simulator
+        can say what is really ahead) or for a fault."""
+        state = res.output.state.value
+        entered = state == "STOP" and self._prev not in (None, "STOP")
+        self._prev = state
+        if not entered:
+            return
+        reason = res.output.reason
+        if "zone" in reason or getattr(self.d.loop.gate, "cause", "") == "obstacle":
+            hub = self.d.shared.get("sim_hub")
+            if hub is None:
+                self.obstacle_stops += 1
+                return
+            v = res.verdict
+            reach = (v.stop_len_m if v is not None else 0.0) + self.d.cfg.zones.slow_extra_m
+            # true: something really is in the vehicle's corridor within the zones (+1 m)
+            if hub.field.vehicle.clearance_ahead() <= reach + 1.0:
+                self.true_stops += 1
+            else:
+                self.false_stops += 1
+        elif "end of recording" not in reason:             # a replay's end is no fault
+            import re
+            key = re.sub(r"\s*\(.*$", "", ":".join(reason.split(":")[:2])).strip()
+            self.fault_stops[key] = self.fault_stops.get(key, 0) + 1
 
     def __call__(self, res) -> None:
+        self._tally_stop(res)
+        self.last_cycle = (res.output.state.value, res.output.reason)
         changed = res.output.state.value != self.last_state
         due = self.last_ns is None or res.stamp_ns - self.last_ns >= self.every_ns
         if not (changed or due):
@@ -135,10 +171,48 @@ class _StatusPrinter:
               f"cells {len(res.cells_xy):4d} | {res.output.reason}{sim}", flush=True)
 
     def final(self):
-        st = self.d.status()
-        print(json.dumps({"cycles": st.get("cycles"), "state": st.get("state"),
-                          "timing_ms": st.get("timing_ms", {}).get("cycle"),
-                          "overruns": st.get("overruns"), "sim": st.get("sim")}, default=str))
+        print("\n".join(self.summary(self.d.status())), flush=True)
+
+    def summary(self, st: dict) -> list[str]:
+        """The closing summary, in words."""
+        def n(k, one, many=None):
+            return f"{k} {one if k == 1 else (many or one + 's')}"
+        state, reason = getattr(self, "last_cycle", (st.get("state"), st.get("reason")))
+        out = [f"summary: {st.get('cycles')} cycles ({st.get('mode')}); the last cycle said "
+               f"{state} ({reason})"]
+        sim = st.get("sim")
+        if sim:
+            out.append(f"  drove {sim.get('distance_m', 0):.1f} m in {sim.get('time_s', 0):.1f} s "
+                       f"of simulated time ({sim.get('stopped_s', 0):.1f} s standing)")
+        obstacle = self.true_stops + self.false_stops + self.obstacle_stops
+        if not obstacle:
+            out.append("  stops for obstacles: none")
+        elif sim is not None:
+            out.append(f"  stops for obstacles: {obstacle}: {self.true_stops} true (something "
+                       f"really ahead), {self.false_stops} false (nothing really there)")
+        else:
+            out.append(f"  stops for obstacles: {obstacle}")
+        if self.fault_stops:
+            out.append("  stops for faults: " + ", ".join(
+                f"{k} x {r}" for r, k in sorted(self.fault_stops.items(), key=lambda kv: -kv[1])))
+        if sim is not None:
+            ov = sim.get("overrides", 0)
+            out.append("  overrides: none (the safety driver never drove on while the box said "
+                       "STOP)" if not ov else
+                       f"  overrides: {ov}: the simulated safety driver drove on {n(ov, 'time')} "
+                       f"while the box held STOP with nothing really ahead (false stops)")
+            c = sim.get("collisions", 0)
+            hit = ", ".join(map(str, sim.get("obstacles_hit") or []))
+            out.append("  collisions: none" if not c else
+                       f"  collisions: {c}: the vehicle hit {hit or n(c, 'obstacle')}")
+        t = st.get("timing_ms", {}).get("cycle", {})
+        line = (f"  loop: cycle p50 {t.get('p50')} ms, p99 {t.get('p99')} ms, "
+                f"{n(st.get('overruns', 0), 'overrun')}")
+        r = (st.get("sim_render_ms") or {})
+        if r.get("p50") is not None:
+            line += f"; the simulator's rendering (not the box's time) p50 {r['p50']} ms"
+        out.append(line)
+        return out
 
 
 def cmd_status(a) -> int:
@@ -162,6 +236,10 @@ def format_status(doc: dict) -> str:
     t = doc.get("timing_ms", {}).get("cycle", {})
     lines.append(f"loop    last {t.get('last')} ms  p50 {t.get('p50')} ms  p99 {t.get('p99')} ms"
                  f"  overruns {doc.get('overruns')}  skipped {doc.get('skipped')}")
+    r = doc.get("sim_render_ms") or {}
+    if r.get("p50") is not None:
+        lines.append(f"sim     rendering p50 {r['p50']} ms  p99 {r['p99']} ms  (the simulator's "
+                     f"time between cycles, not the box's)")
     views = doc.get("console") or {}
     urls = [f"{k} {v['url']}" for k, v in views.items() if isinstance(v, dict) and v.get("url")]
     if urls or views.get("errors"):

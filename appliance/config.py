@@ -148,6 +148,8 @@ class StatusConfig:
     incident_dir: str = _f("", doc="where incident recordings go; empty = none")
     incident_seconds: float = _f(2.0, lo=0.1, hi=30.0, doc="seconds kept before each STOP")
     incident_max: int = _f(20, lo=1, hi=10000, doc="incidents kept on disk (oldest removed)")
+    incident_max_mb: float = _f(2000.0, lo=1.0, doc="disk the incidents may take, MB (oldest "
+                                                    "removed first)")
 
 
 @dataclass(frozen=True)
@@ -311,6 +313,14 @@ def _parse_devices(data, file) -> tuple[DeviceConfig, ...]:
                 raise ConfigError(f"unknown key for a {dtype!r} {kind} (known: {known})",
                                   file=file, key=f"{key}.{k}")
             opts[k] = _check_value(v, schema[k], {}, f"{key}.{k}", file)
+        # what the driver would refuse on open (a connection string it cannot parse, a DBC
+        # it cannot load) is refused here, so `config check` and `run` agree
+        check = getattr(cls, "check_options", None)
+        if check is not None:
+            problem = check(opts)
+            if problem:
+                bad_key, msg = problem
+                raise ConfigError(msg, file=file, key=f"{key}.{bad_key}" if bad_key else key)
         timeout = _check_value(table.get("timeout_s", getattr(cls, "default_timeout_s", 0.25)),
                                float, {"lo": 0.001, "hi": 60.0}, f"{key}.timeout_s", file)
         required = _check_value(table.get("required", True), bool, {}, f"{key}.required", file)
@@ -370,7 +380,21 @@ def _parse_perception(data, file) -> PerceptionConfig:
     return dataclasses.replace(pc, extra=types.MappingProxyType(extra))
 
 
+def check_scene(name: str, *, file: str | None = None, key: str | None = None) -> str:
+    """``name`` if it is a simulated scene, else ConfigError with a did-you-mean."""
+    import difflib
+
+    from drivers.sim.scenes import SCENES       # lazy: the scene list is the simulator's
+    if name in SCENES:
+        return name
+    close = difflib.get_close_matches(name, list(SCENES), n=1, cutoff=0.6)
+    hint = f" (did you mean {close[0]!r}?)" if close else ""
+    raise ConfigError(f"unknown scene {name!r}{hint}; known scenes: "
+                      f"{', '.join(sorted(SCENES))}", file=file, key=key)
+
+
 def _cross_check(cfg: Config, file: str) -> None:
+    check_scene(cfg.sim.scene, file=file, key="sim.scene")
     parse_listen(cfg.console.listen, "console.listen", file)
     parse_listen(cfg.foxglove.listen, "foxglove.listen", file)
     g = cfg.grid

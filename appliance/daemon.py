@@ -64,6 +64,26 @@ def replay_config(cfg: Config, run_path: str) -> Config:
     return dataclasses.replace(cfg, devices=tuple(devs))
 
 
+class RenderAheadClock(ManualClock):
+    """The lock-step clock of ``--sim``: advancing it to the next cycle steps the simulated
+    vehicle and renders the world for that time, so the loop's acquire reads a finished frame
+    (the simulator's rendering is not the box's time; it is measured apart, ``render_ms``)."""
+
+    def __init__(self, start_ns: int, hub):
+        super().__init__(start_ns)
+        self._hub = hub                      # () -> SimHub | None (made with the devices)
+        from appliance.loop import _Timing
+        self.render_ms = _Timing()
+
+    def sleep_until(self, t_ns: int) -> None:
+        super().sleep_until(t_ns)
+        hub = self._hub()
+        if hub is not None:
+            t0 = time.perf_counter()
+            hub.at(self.now_ns())
+            self.render_ms.add((time.perf_counter() - t0) * 1e3)
+
+
 class Daemon:
     def __init__(self, cfg: Config, *, mode: str = "hardware", replay_path: str | None = None,
                  pace: float | None = None, status_socket: str | None = None,
@@ -78,6 +98,9 @@ class Daemon:
         check_daemon_matchers(cfg)
         self.cfg = cfg
         self.mode = mode
+        self.render_clock: RenderAheadClock | None = None
+        if clock is None and mode == "sim":
+            clock = self.render_clock = RenderAheadClock(10**9, lambda: self.shared.get("sim_hub"))
         self.clock = clock or (MonotonicClock() if mode == "hardware" else ManualClock(10**9))
         self.pace = pace if pace is not None else (cfg.sim.pace if mode == "sim" else
                                                    (1.0 if mode == "replay" else None))
@@ -122,6 +145,8 @@ class Daemon:
         self.loop = ApplianceLoop(self.cfg, self.clock, self.devices, self.pipelines,
                                   kinds={d.name: d.kind for d in self.cfg.devices})
         self.loop.on_cycle.append(self._notify_cycle)
+        if self.render_clock is not None:    # the first frame too is rendered before a cycle
+            self.render_clock.sleep_until(self.clock.now_ns())
         for dev in self.devices.values():    # a strobe controller switching by scene brightness
             make = getattr(dev, "day_night_switch", None)
             self.day_night = self.day_night or (make(self.devices) if make else None)
@@ -131,7 +156,7 @@ class Daemon:
             self.loop.on_cycle.append(self._end_of_replay)
         sc = self.cfg.status
         self.recorder = Recorder(self.cfg.loop.rate_hz, sc.incident_dir, sc.incident_seconds,
-                                 sc.incident_max)
+                                 sc.incident_max, incident_max_mb=sc.incident_max_mb)
         self.loop.on_cycle.append(self.recorder.on_cycle)
         if self.serve_status:
             self.status_server = StatusServer(self.status_socket, self.status, self.handle)
@@ -177,6 +202,8 @@ class Daemon:
         hub = self.shared.get("sim_hub")
         if hub is not None:
             doc["sim"] = {"scene": self.cfg.sim.scene, **hub.field.stats()}
+        if self.render_clock is not None:     # the simulator's time, apart from the loop's
+            doc["sim_render_ms"] = self.render_clock.render_ms.summary()
         if self.recorder is not None:
             doc["incidents"] = list(self.recorder.incidents)[-5:]
         if self.day_night is not None:

@@ -15,6 +15,7 @@ run in order, as the daemon does, and scores the occupied cells.
 """
 from __future__ import annotations
 
+import logging
 import math
 import os
 import time
@@ -26,6 +27,8 @@ import numpy as np
 
 from drivers.runfolder import RunInfo, RunReader, scored_zone_for
 from hal.errors import ConfigError, RunFormatError
+
+log = logging.getLogger("fieldguard.eval")
 
 __all__ = ["Zone", "ObstacleScore", "FrameScore", "Aggregate", "zone_for_run",
            "footprint_distance", "score_frame", "evaluate_run", "format_table", "MATCH_M"]
@@ -443,6 +446,8 @@ def evaluate_run(path: str | os.PathLike, pipeline: str | None = None, config=No
         agg = Aggregate()
         stops = _StopTally(cfg.gate.hold_off_s)
         missing_input = 0
+        lost: list[int] = []
+        corrupt: list[tuple[int, str]] = []
         if out is not None:
             sink = open(out, "w", encoding="utf-8")
         n = len(reader)
@@ -450,7 +455,22 @@ def evaluate_run(path: str | os.PathLike, pipeline: str | None = None, config=No
         for i in range(n):
             fr = reader.frames[i]
             vehicle = reader.vehicle(i)
-            data = {s: getattr(reader, s)(i) for s in sensors}
+            data, broken = {}, None
+            for s in sensors:
+                try:
+                    data[s] = getattr(reader, s)(i)
+                except RunFormatError as exc:   # a corrupt file: counted, named, not scored
+                    data[s], broken = None, str(exc)
+            # a frame with a sensor file missing or corrupt is never scored (the gate still
+            # sees it: a fault, as a stale sensor is)
+            damaged = broken is not None or any(v is None for v in data.values())
+            if broken is not None:
+                corrupt.append((fr.index, broken))
+                log.warning("frame %d: %s: not scored", fr.index, broken)
+            elif damaged:
+                lost.append(fr.index)
+                log.warning("frame %d: no %s file: not scored", fr.index,
+                            "/".join(s for s, v in data.items() if v is None))
             inputs = SensorInputs(stamp_ns=fr.stamp_ns, vehicle=vehicle, **data)
             ms = None
             faults = []
@@ -474,7 +494,7 @@ def evaluate_run(path: str | os.PathLike, pipeline: str | None = None, config=No
             picture = core.perceive(detections, vehicle, fr.stamp_ns)
             gate_out = core.decide(fr.stamp_ns, faults, picture)
             cells = picture.cells_xy
-            truth = reader.truth(i)
+            truth = None if damaged else reader.truth(i)
             score = None if truth is None else score_frame(cells, truth, zone, cfg.grid.cell_m)
             agg.add(fr.index, score, ms)
             rects = zone_rects(vehicle.speed_mps if vehicle is not None else 0.0, cfg.zones)
@@ -495,6 +515,12 @@ def evaluate_run(path: str | os.PathLike, pipeline: str | None = None, config=No
     res.update({"run": info.name, "path": str(Path(path)), "pipeline": label,
                 "decision": "tracks" if cfg.tracking.enabled else "cells",
                 "frames_total": n, "frames_missing_input": missing_input,
+                # frames left out of the score: a sensor file missing, or corrupt (named)
+                "frames_missing": len(lost), "frames_missing_indices": lost,
+                "frames_corrupt": len(corrupt),
+                "frames_corrupt_indices": [k for k, _ in corrupt],
+                "frames_corrupt_errors": [e for _, e in corrupt[:20]],
+                "run_warnings": list(reader.warnings),
                 "zone": zone.to_dict(), "config": getattr(cfg, "source", None)})
     return res
 
@@ -513,6 +539,13 @@ def format_table(result: dict) -> str:
     if "run" in result:
         head.append(f"run {result['run']}  pipeline {result.get('pipeline', '?')}  "
                     f"scored frames {result['frames']}/{result.get('frames_total', '?')}")
+        for key, what in (("missing", "a sensor file missing"), ("corrupt", "a corrupt file")):
+            idx = result.get(f"frames_{key}_indices") or []
+            if idx:
+                shown = ", ".join(map(str, idx[:10])) + (", ..." if len(idx) > 10 else "")
+                head.append(f"not scored: {len(idx)} frame(s) with {what} (index {shown})")
+        for w in result.get("run_warnings") or []:
+            head.append(f"warning: {w}")
     cols = ("class", "obstacle-frames", "detected", "recall", "obstacles det/all")
     rows = []
     for cls, r in result.get("per_class", {}).items():

@@ -47,11 +47,13 @@ def _slug(text: str) -> str:
 
 class Recorder:
     def __init__(self, rate_hz: float, incident_dir: str = "", incident_seconds: float = 2.0,
-                 incident_max: int = 20, queue_frames: int = 64):
+                 incident_max: int = 20, queue_frames: int = 64,
+                 incident_max_mb: float = 0.0):
         self.rate_hz = rate_hz
         self.incident_dir = Path(incident_dir) if incident_dir else None
         self.ring: deque = deque(maxlen=max(1, int(round(incident_seconds * rate_hz))))
         self.incident_max = incident_max
+        self.incident_max_bytes = int(incident_max_mb * 1e6)     # 0: no bound by size
         self._q: queue.Queue = queue.Queue(maxsize=queue_frames)
         self._live: list[_Job] = []
         self._lock = threading.Lock()
@@ -163,6 +165,17 @@ class Recorder:
         for old in runs[:-self.incident_max] if self.incident_max > 0 else []:
             shutil.rmtree(old, ignore_errors=True)
             log.info("incident buffer full: removed %s", old.name)
+        runs = runs[-self.incident_max:] if self.incident_max > 0 else runs
+        if self.incident_max_bytes > 0:          # and the disk budget: oldest first, never the
+            sizes = [sum(f.stat().st_size for f in r.rglob("*") if f.is_file()) for r in runs]
+            total = sum(sizes)
+            for old, size in zip(runs[:-1], sizes):          # newest (just written) is kept
+                if total <= self.incident_max_bytes:
+                    break
+                shutil.rmtree(old, ignore_errors=True)
+                total -= size
+                log.info("incident disk budget (%.0f MB) reached: removed %s",
+                         self.incident_max_bytes / 1e6, old.name)
 
     def close(self, timeout_s: float = 5.0) -> None:
         with self._lock:

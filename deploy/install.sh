@@ -3,7 +3,8 @@
 #
 #   sudo deploy/install.sh [--root DIR] [--pip-args "ARGS"] [--no-enable]
 #
-# - a virtual environment in /opt/fieldguard/venv with fieldguard from this source tree;
+# - a virtual environment in /opt/fieldguard/venv with fieldguard from this source tree, and
+#   /usr/local/bin/fieldguard linked to its command;
 # - /etc/fieldguard/fieldguard.toml from deploy/fieldguard.toml, NEVER overwritten: on upgrade a
 #   changed default goes to fieldguard.toml.new beside it;
 # - the udev rules, the unit, the system user `fieldguard`; the unit enabled (not started).
@@ -19,7 +20,7 @@ while [ $# -gt 0 ]; do
     --root) ROOT=$(realpath -m "$2"); shift 2 ;;
     --pip-args) PIP_ARGS=$2; shift 2 ;;
     --no-enable) ENABLE=0; shift ;;
-    -h|--help) sed -n '2,12p' "$0"; exit 0 ;;
+    -h|--help) sed -n '2,11p' "$0"; exit 0 ;;
     *) echo "install.sh: unknown option $1 (see --help)" >&2; exit 2 ;;
   esac
 done
@@ -51,6 +52,15 @@ fi
 say "installing fieldguard from $SRC"
 # shellcheck disable=SC2086
 "$OPT/venv/bin/python" -m pip install --quiet $PIP_ARGS "$SRC"
+# the command on PATH: /usr/local/bin/fieldguard -> the venv's (a path inside the target
+# system, also with --root)
+mkdir -p "$ROOT/usr/local/bin"
+if [ -e "$ROOT/usr/local/bin/fieldguard" ] && [ ! -L "$ROOT/usr/local/bin/fieldguard" ]; then
+  say "kept $ROOT/usr/local/bin/fieldguard (not ours); the command is $OPT/venv/bin/fieldguard"
+else
+  ln -sfn /opt/fieldguard/venv/bin/fieldguard "$ROOT/usr/local/bin/fieldguard"
+  say "linked /usr/local/bin/fieldguard"
+fi
 cp "$SRC/README.md" "$OPT/README.md"
 mkdir -p "$OPT/docs" && cp -r "$SRC/docs/." "$OPT/docs/"
 
@@ -79,5 +89,5 @@ if [ "$ENABLE" = 1 ]; then
     systemctl enable fieldguard.service
   fi
 fi
-say "done. Check the config:  $OPT/venv/bin/fieldguard config check /etc/fieldguard/fieldguard.toml"
+say "done. Check the config:  fieldguard config check /etc/fieldguard/fieldguard.toml"
 say "start it:               systemctl start fieldguard; then: fieldguard status"

@@ -27,6 +27,9 @@ if [ -f "$ROOT/etc/systemd/system/fieldguard.service" ]; then
   fi
 fi
 rm -f "$ROOT/etc/systemd/system/fieldguard.service" "$ROOT/etc/udev/rules.d/99-fieldguard.rules"
+if [ "$(readlink "$ROOT/usr/local/bin/fieldguard" 2>/dev/null)" = /opt/fieldguard/venv/bin/fieldguard ]; then
+  rm -f "$ROOT/usr/local/bin/fieldguard"
+fi
 rm -rf "$ROOT/opt/fieldguard"
 [ -z "$ROOT" ] && systemctl daemon-reload 2>/dev/null || true
 if [ "$PURGE" = 1 ]; then

@@ -1,7 +1,7 @@
 """The box's link to a tractor or sprayer over CAN: SAE J1939 / ISO 11783, with python-can and
 cantools.
 
-What goes out (every frame is described by ``deploy/fieldguard.dbc`` and encoded through it):
+What goes out (every frame is described by ``drivers/fieldguard.dbc`` and encoded through it):
 
 * ``FG_SafetyStatus`` (PGN 0xFF50) every cycle: state, reason code, zone, nearest obstacle
   distance and bearing, speed limit, a 4-bit alive counter and a CRC-8/SAE-J1850. The vehicle
@@ -27,13 +27,15 @@ from pathlib import Path
 
 from drivers.j1939 import (ADDR_NULL, PGN_AISO, AddressClaimer, ClaimState, J1939Id, J1939Name,
                            crc8_sae_j1850, make_id)
+from drivers.reconnect import WireFaults
 from hal.devices import VehicleLink
 from hal.errors import DeviceInitializationError, DeviceOperationError
 from hal.types import GateOutput, GateState, VehicleState
 
 log = logging.getLogger("fieldguard.link.can")
 
-DEFAULT_DBC = str(Path(__file__).resolve().parents[1] / "deploy" / "fieldguard.dbc")
+# package data (pyproject.toml): beside this module in a source tree and in the installed wheel
+DEFAULT_DBC = str(Path(__file__).resolve().with_name("fieldguard.dbc"))
 DEFAULT_NAME = "0xA00C810000E00001"      # arbitrary-address capable, agricultural, function 129
 STATE_CODE = {GateState.STOP: 0, GateState.SLOW: 1, GateState.CLEAR: 2}
 CAN_ERR_BUSOFF = 0x40                     # linux/can/error.h
@@ -64,7 +66,7 @@ def _sector_raw(d: float | None) -> int:
     return max(0, min(250, int(round(d / 0.2))))
 
 
-class CanJ1939VehicleLink(VehicleLink):
+class CanJ1939VehicleLink(WireFaults, VehicleLink):
     options_schema = {
         "interface": str, "channel": str, "bitrate": int, "port": int,
         "name": str, "preferred_address": int, "dbc": str,
@@ -102,6 +104,29 @@ class CanJ1939VehicleLink(VehicleLink):
         self._last_addr = None
         self._last_state_check = 0.0
         self.last_wire_ns: int | None = None      # when the newest status frame went out
+
+    @classmethod
+    def check_options(cls, options) -> tuple[str, str] | None:
+        """(key, message) for what ``open`` would refuse (config check and run agree): a DBC
+        that is not there or does not parse, a python-can interface that does not exist."""
+        dbc = options.get("dbc") or DEFAULT_DBC
+        try:
+            import cantools
+            cantools.database.load_file(dbc)
+        except ImportError:
+            pass
+        except Exception as exc:
+            what = "" if options.get("dbc") else " (the shipped one: reinstall fieldguard)"
+            return "dbc", f"cannot load the DBC {dbc}{what}: {exc}"
+        iface = options.get("interface", "socketcan")
+        try:
+            from can.interfaces import VALID_INTERFACES
+        except ImportError:
+            return None
+        if iface not in VALID_INTERFACES:
+            return "interface", (f"unknown python-can interface {iface!r}; known: "
+                                 f"{', '.join(sorted(VALID_INTERFACES))}")
+        return None
 
     @classmethod
     def from_config(cls, cfg, clock, shared):
@@ -303,6 +328,9 @@ class CanJ1939VehicleLink(VehicleLink):
             self._on_speed(jid, data)
 
     def _on_speed(self, jid: J1939Id, data: bytes) -> None:
+        if self._distrusted():
+            self._count("speed_discarded")
+            return
         if len(data) < self.speed_msg.length:
             self._count("rx_malformed")
             self._fault(f"malformed speed frame from 0x{jid.sa:02X}: {len(data)} bytes")
@@ -325,13 +353,15 @@ class CanJ1939VehicleLink(VehicleLink):
 
     def _on_error_frame(self, msg, now: float) -> None:
         self._count("error_frames")
+        # latched for fault_hold_s: the next speed frame (<= 100 ms) must not clear a bus-off
+        # before the loop has seen it (the soak found bus-offs that never became a STOP)
         if msg.arbitration_id & CAN_ERR_BUSOFF:
             self._count("bus_off")
-            self._fault("CAN bus-off")
+            self._wire_error("CAN bus-off")
             return
         self._err_times = [t for t in self._err_times if now - t < 1.0] + [now]
         if len(self._err_times) >= self.error_limit:
-            self._fault(f"CAN bus errors: {len(self._err_times)} error frames in 1 s")
+            self._wire_error(f"CAN bus errors: {len(self._err_times)} error frames in 1 s")
 
     def _check_bus_state(self, now: float) -> None:
         if now - self._last_state_check < 0.5:

@@ -6,7 +6,7 @@ first asked (or given to :meth:`RunPlayer.start`). A device publishes the newest
 re-stamped to the player's clock, once; frames the loop was too slow to see are skipped (a slot,
 never a queue); a frame whose file is missing publishes nothing (the data ages, as a dropped
 frame would). After the last frame the devices publish nothing more, so their data goes stale and
-the gate stops — unless ``loop=True``, which replays the run again and again.
+the gate stops, with the reason "end of recording" — unless ``loop=True``, which replays the run again and again.
 
 - lock-step (``realtime=False``): the loop's ``service(now_ns)`` publishes; deterministic with a
   :class:`hal.ManualClock`.
@@ -20,7 +20,7 @@ import dataclasses
 import threading
 
 from hal import (Clock, DepthCamera, DepthFrame, DeviceInitializationError, GateOutput,
-                 LaserScan, RunFormatError, SafetyLaser, StereoCalibration, StereoCamera,
+                 Health, LaserScan, RunFormatError, SafetyLaser, StereoCalibration, StereoCamera,
                  StereoFrame, VehicleLink, VehicleState)
 
 from .runfolder import RunReader
@@ -141,6 +141,17 @@ class _Replay:
     def service(self, now_ns: int) -> None:
         if not self.player.realtime:
             self._step(now_ns)
+
+    def health(self, now_ns: int | None = None):
+        """As every device's; data gone stale because the run is over says so ("end of
+        recording"), not "stale" as a sensor that stopped would."""
+        h = super().health(now_ns)                        # type: ignore[misc]
+        if h.state is Health.NO_DATA and self.player.start_ns is not None:
+            now = self.player.clock.now_ns() if now_ns is None else now_ns
+            if self.player.finished(now):
+                return dataclasses.replace(
+                    h, reason=f"end of recording ({self.player.reader.info.name})")
+        return h
 
     def _acquire_once(self) -> None:
         if not self.player.realtime:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import logging
 import math
 import os
 import shutil
@@ -27,6 +28,8 @@ import tomli_w
 
 from hal import (DepthCalibration, DepthFrame, LaserGeometry, LaserScan, Mount,
                  PinholeCalibration, RunFormatError, StereoCalibration, StereoFrame, VehicleState)
+
+log = logging.getLogger("fieldguard.runfolder")
 
 __all__ = ["RunInfo", "FrameRecord", "RunReader", "RunWriter", "scored_zone_for",
            "FRAME_COLUMNS", "ILLUMINATIONS", "SENSORS"]
@@ -211,14 +214,45 @@ def _parse_run_toml(path: Path) -> RunInfo:
 # ---------------------------------------------------------------------------------------------
 # frames.csv parsing
 # ---------------------------------------------------------------------------------------------
-def _parse_frames(info: RunInfo) -> list[FrameRecord]:
+def _parse_frames(info: RunInfo, warnings: list[str] | None = None) -> list[FrameRecord]:
+    """frames.csv as records. A last line cut short (no end of line, and the file is valid
+    without it: what a power cut during a write leaves) is dropped with a warning (logged and
+    appended to ``warnings``); any other departure from the contract is an error."""
     file = info.path / "frames.csv"
     if not file.is_file():
         raise RunFormatError(f"{file}: missing (every run folder needs frames.csv)")
     try:
-        text = file.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as exc:
+        raw = file.read_bytes()
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        # a write cut inside a multi-byte character is a torn last line too
+        cut = raw.rfind(b"\n") + 1
+        if not raw.endswith(b"\n") and exc.start >= cut > 0:
+            text = raw[:cut].decode("utf-8-sig", errors="strict") + "\ufffd"
+        else:
+            raise RunFormatError(f"{file}: cannot read: {exc}") from None
+    except OSError as exc:
         raise RunFormatError(f"{file}: cannot read: {exc}") from None
+    try:
+        return _parse_frames_text(file, text, info)
+    except RunFormatError as exc:
+        cut = text.rfind("\n") + 1
+        if text.endswith(("\n", "\r")) or cut == 0 or not text[cut:].strip():
+            raise
+        try:
+            frames = _parse_frames_text(file, text[:cut], info)
+        except RunFormatError:
+            raise exc from None
+        line = text.count("\n") + 1
+        msg = (f"{file}: line {line} is cut short (no end of line, as a write cut off by a "
+               f"power cut leaves it): dropped it ({exc})")
+        log.warning("%s", msg)
+        if warnings is not None:
+            warnings.append(msg)
+        return frames
+
+
+def _parse_frames_text(file: Path, text: str, info: RunInfo) -> list[FrameRecord]:
     try:
         rows = list(csv.reader(io.StringIO(text)))
     except csv.Error as exc:            # a bare CR inside a field (tests/fuzz/fuzz_runfolder.py)
@@ -446,7 +480,8 @@ class RunReader:
     def __init__(self, path: str | os.PathLike):
         self.path = Path(path)
         self.info: RunInfo = _parse_run_toml(self.path)
-        self.frames: list[FrameRecord] = _parse_frames(self.info)
+        self.warnings: list[str] = []       # what was forgiven (a torn last line)
+        self.frames: list[FrameRecord] = _parse_frames(self.info, self.warnings)
 
     def __len__(self) -> int:
         return len(self.frames)

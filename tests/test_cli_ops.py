@@ -145,3 +145,47 @@ def test_incident_ring_buffer_keeps_the_seconds_before_a_stop(tmp_path):
         states = [row["gate_state"] for row in csv.DictReader(f)]
     assert "STOP" in states and states[0] != "STOP"
     assert "stop" in runs[0].name.lower() or "obstacle" in runs[0].name.lower()
+
+
+def test_sim_rendering_is_reported_apart_from_the_loop(daemon):
+    """--sim renders the world while its clock advances between cycles: the loop's acquire
+    reads a finished frame, and status shows the rendering on its own (issue #16)."""
+    d, sock, _ = daemon
+    from appliance.status import read_status
+    st = read_status(sock, timeout_s=10)
+    r, acq = st["sim_render_ms"], st["timing_ms"]["acquire"]
+    assert r["p50"] is not None and acq["p50"] is not None
+    # a laser scan and the vehicle take milliseconds to render; acquire only hands them over
+    assert acq["p50"] < r["p50"], (acq, r)
+    from appliance.cli import format_status
+    assert "rendering p50" in format_status(st)
+
+
+def _run(*args, timeout=300):
+    import subprocess
+    import sys
+    from pathlib import Path
+    return subprocess.run([sys.executable, "-m", "appliance.cli", *map(str, args)],
+                          capture_output=True, text=True, timeout=timeout,
+                          cwd=Path(__file__).resolve().parents[1])
+
+
+def test_the_closing_summary_is_in_words(tmp_path):
+    r = _run("run", "--sim", "--fast", "--duration", "10", "--print-every", "5",
+             "--socket", tmp_path / "s.sock")
+    assert r.returncode == 0, r.stderr
+    out = r.stdout
+    assert "summary: 100 cycles (sim)" in out
+    assert "stops for obstacles: 1: 1 true (something really ahead), 0 false" in out, out
+    assert "overrides: none" in out and "collisions: none" in out
+    assert "the simulator's rendering (not the box's time) p50" in out
+
+
+def test_greenhouse_runs_the_rgbd_pipeline_and_drives(tmp_path):
+    r = _run("run", "--sim", "greenhouse", "--fast", "--duration", "3", "--print-every", "2",
+             "--socket", tmp_path / "s.sock", timeout=900)
+    assert r.returncode == 0, r.stderr
+    assert "pipelines=rgbd" in r.stderr and "devices=rgbd,link" in r.stderr, r.stderr[-2000:]
+    import re
+    m = re.search(r"drove (\d+\.\d) m", r.stdout)
+    assert m and float(m.group(1)) > 0.3, r.stdout      # the greenhouse sprayer's zones

@@ -99,3 +99,69 @@ def test_install_refuses_unknown_option(tmp_path):
     r = subprocess.run(["bash", str(ROOT / "deploy" / "install.sh"), "--frobnicate"],
                        capture_output=True, text=True)
     assert r.returncode == 2 and "unknown option" in r.stderr
+
+
+# ---- the shipped config and the device names (issue #16) ------------------------------------
+SHIPPED = ROOT / "deploy" / "fieldguard.toml"
+
+
+def _templates() -> dict[str, str]:
+    """The commented device templates of the shipped config, uncommented, by heading (#n)."""
+    out, cur, buf = {}, None, []
+
+    def flush():
+        if cur:
+            out[f"{cur} #{len(out)}"] = "\n".join(buf)
+
+    for line in SHIPPED.read_text().splitlines():
+        if line.startswith("# [devices."):
+            flush()
+            cur, buf = line[2:].strip(), [line[2:]]
+        elif cur and line.startswith("# ") and "=" in line:
+            buf.append(line[2:])
+        else:
+            flush()
+            cur, buf = None, []
+    flush()
+    return out
+
+
+def test_shipped_config_is_a_hardware_template_that_parses():
+    import tomllib
+    from appliance.config import parse_config
+    t = _templates()
+    kinds = sorted({k.split()[0] for k in t})
+    assert kinds == ["[devices.laser]", "[devices.link]", "[devices.rgbd]", "[devices.stereo]",
+                     "[devices.trigger]"], kinds
+    types = set()
+    for head, body in t.items():
+        table = tomllib.loads(body)["devices"]
+        (name, dev), = table.items()
+        types.add(dev["type"])
+        # each template is a valid device table (beside a sim laser / a sim link)
+        devs = {"laser": {"type": "sim"}, "link": {"type": "sim"}, name: dev}
+        parse_config({"devices": devs}, f"template {head}")
+    assert {"mavlink", "can-j1939", "sick-lms1xx", "aravis", "freenect", "serial"} <= types
+    text = SHIPPED.read_text()
+    assert "same as `fieldguard run --sim`" not in text
+
+
+def test_shipped_config_records_incidents_within_a_disk_budget():
+    from appliance.config import load_config
+    cfg = load_config(SHIPPED)
+    assert cfg.status.incident_dir == "/var/lib/fieldguard/incidents"     # StateDirectory
+    assert cfg.status.incident_max >= 1 and 0 < cfg.status.incident_max_mb <= 5000
+    assert "StateDirectory=fieldguard" in UNIT.read_text()
+
+
+def test_device_names_agree_between_udev_the_drivers_and_the_templates():
+    from drivers.strobe_serial import StrobeSerialTrigger as StrobeTrigger
+    rules = (ROOT / "deploy" / "99-fieldguard.rules").read_text()
+    names = {f"/dev/{n}" for n in re.findall(r'SYMLINK\+="([^"]+)"', rules)}
+    assert names == {"/dev/fieldguard-strobe", "/dev/fieldguard-autopilot"}
+    import inspect
+    default_port = inspect.signature(StrobeTrigger.__init__).parameters["port"].default
+    assert default_port in names
+    t = "\n".join(_templates().values())
+    for dev in re.findall(r'"(/dev/[^"]+)"', t):
+        assert dev in names, dev

@@ -260,9 +260,11 @@ def test_evaluate_run_wiring_with_a_fake_pipeline(tmp_path, monkeypatch):
     assert all(c.laser is not None and c.stereo is None for c in fake.calls)
     assert all(c.vehicle is not None for c in fake.calls)
     assert r["frames_missing_input"] == 1 and r["timed_frames"] == 3
-    # one-frame grid: frame 1 detects and has one FP cell; frame 2 detects; frame 3 nothing
-    assert r["detected_obstacle_frames"] == 2 and r["obstacle_frames"] == 3
-    assert r["false_positive_frames"] == 1 and r["fp_cells_per_frame"] == pytest.approx(1 / 3)
+    # frame 3 (its laser file gone) is named and not scored (issue #16: it used to be scored
+    # as a miss, silently); one-frame grid: frame 1 detects and has one FP cell; frame 2 detects
+    assert r["frames_missing"] == 1 and r["frames_missing_indices"] == [3]
+    assert r["detected_obstacle_frames"] == 2 and r["obstacle_frames"] == 2
+    assert r["false_positive_frames"] == 1 and r["fp_cells_per_frame"] == pytest.approx(1 / 2)
 
 
 def test_evaluate_run_refuses_pipeline_without_its_sensor(tmp_path, monkeypatch):

@@ -1,5 +1,7 @@
 #!/usr/bin/env bash
-# Creates .venv (once) and installs fieldguard into it with the test extras. Idempotent.
+# Creates .venv (once) and installs fieldguard into it: what the product needs, nothing more
+# (the test tools are tools/test.sh's; PyGObject, one of them, builds from source and needs the
+# GObject headers). Idempotent.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
@@ -11,6 +13,6 @@ stamp=.venv/.fieldguard-installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
   echo "setup: installing fieldguard and its dependencies (first time: a minute or two)" >&2
   .venv/bin/python -m pip install --quiet --upgrade pip
-  .venv/bin/python -m pip install --quiet -e '.[test]'
+  .venv/bin/python -m pip install --quiet -e .
   touch "$stamp"
 fi
