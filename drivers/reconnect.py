@@ -7,9 +7,11 @@ port, the GigE cameras, the RGB-D helper process).
   is not connected the driver's ``_acquire_once`` calls :meth:`Reconnecting._connect_when_due`;
   anything that loses the connection calls :meth:`Reconnecting._drop`, which closes what is half
   open (the driver's ``_disconnect()`` hook), schedules the next try, counts it and marks the
-  device FAULT. Corruption on a live connection is :meth:`Reconnecting._wire_error`: the device
-  is not trusted for ``fault_hold_s`` (samples arriving meanwhile are discarded, so the loop is
-  sure to see the fault) without dropping the connection.
+  device FAULT.
+* :class:`WireFaults` (which Reconnecting includes; the CAN link uses it alone): corruption or a
+  bus-off on a live connection is :meth:`WireFaults._wire_error`: the device is not trusted for
+  ``fault_hold_s`` (samples arriving meanwhile are discarded, so the loop is sure to see the
+  fault) without dropping the connection.
 """
 from __future__ import annotations
 
@@ -50,7 +52,25 @@ class Backoff:
         self.failures = 0
 
 
-class Reconnecting:
+class WireFaults:
+    """Mixin (before the hal device class): corruption or a bus error on a live connection is
+    a fault held for ``fault_hold_s``, during which the driver discards what arrives
+    (:meth:`_distrusted`), so the next good sample cannot clear it before the loop has seen it."""
+
+    fault_hold_s = 0.3
+    _bad_until = 0.0
+
+    def _wire_error(self, reason: str) -> None:
+        """Corruption on the wire: not trusted for ``fault_hold_s``, FAULT."""
+        self._bad_until = time.monotonic() + self.fault_hold_s
+        self._fault(reason)
+
+    def _distrusted(self) -> bool:
+        """Still inside the hold after corruption (discard what arrives)."""
+        return time.monotonic() < self._bad_until
+
+
+class Reconnecting(WireFaults):
     """Mixin (before the hal device class) for threaded drivers that hold a connection.
 
     The driver sets ``self.backoff`` (a :class:`Backoff`) and, if it has one, ``fault_hold_s``;
@@ -58,8 +78,6 @@ class Reconnecting:
     forget parse state; must not raise) and resets the back-off on its first good sample."""
 
     reconnect_counter = "reconnects"
-    fault_hold_s = 0.3
-    _bad_until = 0.0
 
     def _connect_when_due(self, connect) -> None:
         """Call ``connect()`` once the back-off allows, else wait at most 0.1 s (close() is
@@ -84,12 +102,3 @@ class Reconnecting:
         self.backoff.failed()
         self._count(self.reconnect_counter)
         self._fault(reason)
-
-    def _wire_error(self, reason: str) -> None:
-        """Corruption on the wire: not trusted for ``fault_hold_s``, FAULT."""
-        self._bad_until = time.monotonic() + self.fault_hold_s
-        self._fault(reason)
-
-    def _distrusted(self) -> bool:
-        """Still inside the hold after corruption (discard what arrives)."""
-        return time.monotonic() < self._bad_until

@@ -289,6 +289,7 @@ class Soak:
         self.notes: list[str] = []
         self.status_cli: list[dict] = []
         self.load: list[float] = []
+        self.only: list[str] = []
 
     # ---- set-up ------------------------------------------------------------------------------
     def setup(self):
@@ -450,15 +451,22 @@ class Soak:
             time.sleep(max(hold, MAV_TIMEOUT + 0.5))
             w.mav.cmd("talk")
         elif kind == "mav_refuse":
+            # the box must know the vehicle left HOLD (its 1 Hz HEARTBEAT after "mode 10"), and
+            # the vehicle must have taken "refuse" before the STOP's first HOLD goes out
+            time.sleep(max(0.0, self.mode_at + 1.5 - now()))
             n0 = len(w.mav.find(ev="set_mode", answer="denied"))
+            n_ack = len(w.mav.find(ev="ack_cmd", cmd="refuse"))
             w.mav.cmd("refuse 1000")
-            wait_for(lambda: w.mav.find(ev="ack_cmd", cmd="refuse"), 2)
+            wait_for(lambda: len(w.mav.find(ev="ack_cmd", cmd="refuse")) > n_ack, 5)
+            t = f["t_inject"] = now()
             w.sick.cmd("object 2.0")              # a post 2 m ahead of the scanner: STOP
             ok = wait_for(lambda: len(w.mav.find(ev="set_mode", answer="denied")) > n0, 5)
             f["obstacle_at"] = now() if not ok else None
             den = w.mav.find(ev="set_mode", answer="denied")
             f["t_detect"] = den[n0]["t"] if ok else t
             f["refused"] = ok
+            if not ok:
+                f["expect"] = "refusal (the vehicle never refused: not a test of the box)"
             w.sick.cmd("clear")                   # the post is gone; the refusal is not
             time.sleep(hold)
             w.mav.cmd("accept")
@@ -526,7 +534,9 @@ class Soak:
         end = self.t_faults + self.minutes * 60
         self.cli_status()
         self.wire.mav.cmd("mode 10")            # the operator starts the mission
-        kinds = [k for k in FAULTS if self.tmpfs or k != "disk_full"]
+        self.mode_at = time.monotonic()
+        kinds = [k for k in FAULTS if (self.tmpfs or k != "disk_full") and
+                 (not self.only or k in self.only)]
         weights = [FAULTS[k] for k in kinds]
         nxt = time.monotonic() + 2.0
         while True:
@@ -547,6 +557,7 @@ class Soak:
             self.faults.append(rec)
             rec["recovered_at"] = self.wait_recovered(rec, 25)
             self.wire.mav.cmd("mode 10")     # the operator resumes the mission after a stop
+            self.mode_at = time.monotonic()
             self.load.append(os.getloadavg()[0])
             nxt = max(time.monotonic() + 1.0,
                       nxt + self.interval * self.rng.uniform(0.8, 1.2))
@@ -882,6 +893,9 @@ def main(argv=None) -> int:
     ap.add_argument("--out", required=True, help="directory for the summary, events and plots")
     ap.add_argument("--json", action="store_true", help="print the summary as JSON")
     ap.add_argument("--interval", type=float, default=20.0, help="seconds between faults")
+    ap.add_argument("--faults", default="",
+                    help="comma-separated fault kinds to draw from (default: all): "
+                         + ", ".join(FAULTS))
     ap.add_argument("--inside", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--analyse", action="store_true",
                     help="judge the events.json already in --out again (no run)")
@@ -890,11 +904,16 @@ def main(argv=None) -> int:
         return analyse_again(a)
     if a.minutes <= 0 or a.interval <= 0:
         die("--minutes and --interval must be > 0")
+    only = [k for k in a.faults.split(",") if k]
+    bad = [k for k in only if k not in FAULTS]
+    if bad:
+        die(f"--faults: unknown kind {bad[0]!r}; known: {', '.join(FAULTS)}")
     if not a.inside:
         return outside(a, [x for x in argv if x != "--inside"])
     out = Path(a.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     soak = Soak(out, a.minutes, a.seed, a.interval)
+    soak.only = only
     try:
         soak.run()
     finally:
