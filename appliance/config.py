@@ -114,7 +114,9 @@ class TrackingConfig:
     small_m: float = _f(0.2, lo=0.0, hi=20.0)
     coast_s: float = _f(0.5, lo=0.0, hi=10.0, doc="a confirmed track is kept this long unseen")
     tentative_coast_s: float = _f(0.15, lo=0.0, hi=10.0)
-    max_speed_mps: float = _f(2.5, lo=0.0, hi=50.0, doc="faster over ground: not an obstacle")
+    max_speed_mps: float = _f(50.0, lo=0.0, hi=50.0,
+                              doc="faster over ground: not an obstacle (50 = off: at 2.5 the "
+                                  "noisy speed of stereo clusters unconfirmed real obstacles)")
     comoving_mps: float = _f(0.4, lo=0.0, hi=10.0,
                              doc="moving with the vehicle within this: an artefact, not confirmed")
     speed_check_frames: int = _f(4, lo=1, hi=100, doc="hits before the speed checks apply")
