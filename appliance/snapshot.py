@@ -1,7 +1,10 @@
 """What the box sees now, in one picture: the camera image with the pipelines' masks and the
 obstacle cells drawn on it, the depth (or slope) view, and the occupancy grid with the zones.
-Pure: arrays in, a BGR image out (the daemon encodes it)."""
+Confirmed tracks are drawn on both: footprint, id, distance and cues. Pure: arrays in, a BGR
+image out (the daemon encodes it)."""
 from __future__ import annotations
+
+import math
 
 import cv2
 import numpy as np
@@ -46,7 +49,13 @@ def project_cells(cells_xy: np.ndarray, calib_camera, mount) -> np.ndarray:
     """Vehicle-frame ground cells -> pixel coordinates (N, 2), NaN where behind the camera."""
     if not len(cells_xy):
         return np.zeros((0, 2))
-    pts = np.c_[cells_xy, np.zeros(len(cells_xy))]
+    return project_points(np.c_[cells_xy, np.zeros(len(cells_xy))], calib_camera, mount)
+
+
+def project_points(pts: np.ndarray, calib_camera, mount) -> np.ndarray:
+    """Vehicle-frame 3-D points (N, 3) -> pixel coordinates (N, 2), NaN behind the camera."""
+    if not len(pts):
+        return np.zeros((0, 2))
     r = mount.camera_to_vehicle()
     pc = (pts - mount.position) @ r            # vehicle -> optical (R^T applied row-wise)
     z = pc[:, 2]
@@ -86,9 +95,43 @@ def camera_panel(res) -> np.ndarray | None:
     for u, v in uv:
         if np.isfinite(u) and 0 <= u < img.shape[1] and 0 <= v < img.shape[0]:
             cv2.circle(img, (int(u), int(v)), max(2, img.shape[1] // 320), (0, 255, 255), -1)
+    tracks = [t for t in getattr(res, "tracks", ()) if t.confirmed]
+    for t in tracks:
+        draw_track_in_camera(img, t, cam, mount)
     out = _fit(img, PANEL_H)
-    _label(out, f"{what}: red = pipeline masks, yellow = occupied cells", (8, 20), 0.5)
+    what_tracks = ", blue = tracks" if tracks else ""
+    _label(out, f"{what}: red = pipeline masks, yellow = occupied cells{what_tracks}", (8, 20),
+           0.5)
     return out
+
+
+TRACK_BGR = (255, 160, 40)
+
+
+def track_label(t) -> str:
+    """id, distance and cues of a track, e.g. "#7 4.1 m laser+geometry"."""
+    return f"#{t.id} {math.hypot(t.x_m, t.y_m):.1f} m {'+'.join(t.sources) or '?'}"
+
+
+def draw_track_in_camera(img: np.ndarray, t, cam, mount) -> None:
+    """The track's footprint box (ground to its height, 0.5 m when unknown) projected."""
+    h = t.height_m if t.height_m > 0 else 0.5
+    x0, x1 = t.x_m - t.length_m / 2, t.x_m + t.length_m / 2
+    y0, y1 = t.y_m - t.width_m / 2, t.y_m + t.width_m / 2
+    corners = np.array([[x, y, z] for x in (x0, x1) for y in (y0, y1) for z in (0.0, h)])
+    uv = project_points(corners, cam, mount)
+    ok = np.all(np.isfinite(uv), axis=1)
+    if ok.sum() < 2:
+        return
+    u0, v0 = uv[ok].min(axis=0)
+    u1, v1 = uv[ok].max(axis=0)
+    H, W = img.shape[:2]
+    if u1 < 0 or v1 < 0 or u0 >= W or v0 >= H:
+        return
+    p0 = (int(max(u0, 0)), int(max(v0, 0)))
+    p1 = (int(min(u1, W - 1)), int(min(v1, H - 1)))
+    cv2.rectangle(img, p0, p1, TRACK_BGR, max(2, W // 400))
+    _label(img, track_label(t), (p0[0], max(p0[1] - 6, 14)), 0.5, TRACK_BGR)
 
 
 def depth_panel(res) -> np.ndarray | None:
@@ -152,6 +195,17 @@ def grid_panel(res, evidence: np.ndarray, cfg: Config) -> np.ndarray:
     cv2.rectangle(img, px(f + stop, hw), px(f, -hw), STATE_BGR[GateState.STOP], 2)
     for e in z.exclusion:
         cv2.rectangle(img, px(e.x_max_m, e.y_max_m), px(e.x_min_m, e.y_min_m), (200, 120, 0), 1)
+    # tracks: footprint, id, distance, cues
+    for t in getattr(res, "tracks", ()):
+        if not t.confirmed:
+            continue
+        a = px(t.x_m + t.length_m / 2, t.y_m + t.width_m / 2)
+        b = px(t.x_m - t.length_m / 2, t.y_m - t.width_m / 2)
+        cv2.rectangle(img, a, b, TRACK_BGR, 1 if t.coasting else 2)
+        if abs(t.vx_mps) + abs(t.vy_mps) > 0.3:
+            end = px(t.x_m + t.vx_mps, t.y_m + t.vy_mps)
+            cv2.arrowedLine(img, px(t.x_m, t.y_m), end, TRACK_BGR, 1, tipLength=0.3)
+        _label(img, track_label(t), (b[0] + 4, a[1] + 4), 0.38, TRACK_BGR)
     # vehicle
     cv2.rectangle(img, px(f, 0.75), px(min(0.0, f - 2.6), -0.75), (220, 220, 220), -1)
     _label(img, f"grid: stop zone {stop:.1f} m at {speed:.1f} m/s, slow +{z.slow_extra_m:.0f} m",
