@@ -27,6 +27,7 @@ from pathlib import Path
 
 from drivers.j1939 import (ADDR_NULL, PGN_AISO, AddressClaimer, ClaimState, J1939Id, J1939Name,
                            crc8_sae_j1850, make_id)
+from drivers.reconnect import WireFaults
 from hal.devices import VehicleLink
 from hal.errors import DeviceInitializationError, DeviceOperationError
 from hal.types import GateOutput, GateState, VehicleState
@@ -65,7 +66,7 @@ def _sector_raw(d: float | None) -> int:
     return max(0, min(250, int(round(d / 0.2))))
 
 
-class CanJ1939VehicleLink(VehicleLink):
+class CanJ1939VehicleLink(WireFaults, VehicleLink):
     options_schema = {
         "interface": str, "channel": str, "bitrate": int, "port": int,
         "name": str, "preferred_address": int, "dbc": str,
@@ -327,6 +328,9 @@ class CanJ1939VehicleLink(VehicleLink):
             self._on_speed(jid, data)
 
     def _on_speed(self, jid: J1939Id, data: bytes) -> None:
+        if self._distrusted():
+            self._count("speed_discarded")
+            return
         if len(data) < self.speed_msg.length:
             self._count("rx_malformed")
             self._fault(f"malformed speed frame from 0x{jid.sa:02X}: {len(data)} bytes")
@@ -349,13 +353,15 @@ class CanJ1939VehicleLink(VehicleLink):
 
     def _on_error_frame(self, msg, now: float) -> None:
         self._count("error_frames")
+        # latched for fault_hold_s: the next speed frame (<= 100 ms) must not clear a bus-off
+        # before the loop has seen it (the soak found bus-offs that never became a STOP)
         if msg.arbitration_id & CAN_ERR_BUSOFF:
             self._count("bus_off")
-            self._fault("CAN bus-off")
+            self._wire_error("CAN bus-off")
             return
         self._err_times = [t for t in self._err_times if now - t < 1.0] + [now]
         if len(self._err_times) >= self.error_limit:
-            self._fault(f"CAN bus errors: {len(self._err_times)} error frames in 1 s")
+            self._wire_error(f"CAN bus errors: {len(self._err_times)} error frames in 1 s")
 
     def _check_bus_state(self, now: float) -> None:
         if now - self._last_state_check < 0.5:

@@ -20,7 +20,8 @@ import cantools  # noqa: E402,F401
 import msgpack  # noqa: E402,F401
 
 from drivers.can_link import DEFAULT_DBC, CanJ1939VehicleLink  # noqa: E402
-from drivers.j1939 import AddressClaimer, ClaimState, J1939Name, crc8_sae_j1850, make_id  # noqa: E402
+from drivers.j1939 import (AddressClaimer, ClaimState, J1939Id, J1939Name,  # noqa: E402
+                           crc8_sae_j1850, make_id)
 from hal import GateState, MonotonicClock  # noqa: E402
 from hal.health import Health  # noqa: E402
 from tools.linkrig import PY, ROOT, LoopRig, Peer, wait_for  # noqa: E402
@@ -62,6 +63,30 @@ def test_error_frames_and_bus_off_are_faults():
     for i in range(3):
         link._on_error_frame(can.Message(arbitration_id=0x04, is_error_frame=True), 1.0 + i / 10)
     assert "error frames" in link.health().reason
+
+
+def test_bus_off_is_held_over_the_next_speed_frame():
+    """A bus-off used to be cleared by the next speed frame (<= 100 ms later), so the loop
+    could miss it entirely: the soak's bus-offs never became a STOP. It is held fault_hold_s."""
+    import can
+    link = CanJ1939VehicleLink("can", MonotonicClock(), interface="virtual", channel="busoff")
+    link.open()
+    try:
+        speed = link.speed_msg.encode({"WBSD_Speed": 1.0, "WBSD_Distance": 0,
+                                       "WBSD_Direction": 1}, padding=True)
+        jid = J1939Id.parse(make_id(3, 65096, 0xF0))
+        link._on_speed(jid, speed)
+        assert link.health().state is Health.OK
+        link._on_error_frame(can.Message(arbitration_id=0x40, is_error_frame=True),
+                             time.monotonic())
+        link._on_speed(jid, speed)                    # the next speed frame: still FAULT
+        assert link.health().state is Health.FAULT and "bus-off" in link.health().reason
+        assert link.counters["speed_discarded"] == 1
+        time.sleep(link.fault_hold_s + 0.05)
+        link._on_speed(jid, speed)                    # after the hold: trusted again
+        assert link.health().state is Health.OK
+    finally:
+        link.close()
 
 
 # ---- between processes -----------------------------------------------------------------------------
