@@ -190,15 +190,30 @@ def cluster_points(points: dict[str, tuple[np.ndarray, tuple[str, ...]]], grid: 
     return out
 
 
-def from_candidate(c: Candidate, cell_m: float) -> Measurement:
+def from_candidate(c: Candidate, cell_m: float, points_xy: np.ndarray | None = None
+                   ) -> Measurement | None:
+    """A front end's candidate as a measurement. ``points_xy``: the pipeline's points (only
+    those in occupied cells with ``input = "occupied"``); the candidate's cells are the cells of
+    those inside its footprint (None when there are none: not supported this cycle). Without
+    points, its footprint's cells."""
     conf = float(min(max(c.confidence, 0.0), 1.0))
     x0, x1 = c.x_m - c.length_m / 2, c.x_m + c.length_m / 2
     y0, y1 = c.y_m - c.width_m / 2, c.y_m + c.width_m / 2
+    if points_xy is None:
+        cells = _rect_cells(x0, x1, y0, y1, cell_m)
+    else:
+        p = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
+        h = cell_m / 2
+        inside = ((p[:, 0] >= x0 - h) & (p[:, 0] <= x1 + h) & (p[:, 1] >= y0 - h)
+                  & (p[:, 1] <= y1 + h))
+        if not inside.any():
+            return None
+        cells = np.unique((np.floor(p[inside] / cell_m) + 0.5) * cell_m, axis=0)
     return Measurement(x_m=float(c.x_m), y_m=float(c.y_m), length_m=float(max(c.length_m, cell_m)),
                        width_m=float(max(c.width_m, cell_m)), height_m=float(c.height_m),
                        points=int(c.points), confidence=conf,
                        strength={s: conf for s in c.sources},
-                       cells_xy=_rect_cells(x0, x1, y0, y1, cell_m), pipelines=(c.pipeline,))
+                       cells_xy=cells, pipelines=(c.pipeline,))
 
 
 def merge_touching(ms: list[Measurement], gap_m: float) -> list[Measurement]:
@@ -271,13 +286,18 @@ def measurements(detections: dict[str, Detections], grid: GridConfig,
     for name, det in detections.items():
         if det is None:
             continue
+        xy = det.points_xy if occupied is None or not len(det.points_xy) else \
+            keep_in_mask(det.points_xy, occupied, grid)
         if det.candidates:
-            given += [from_candidate(c, grid.cell_m) for c in det.candidates]
-        elif len(det.points_xy):
-            xy = det.points_xy if occupied is None else keep_in_mask(det.points_xy, occupied,
-                                                                     grid)
-            if len(xy):
-                pts[name] = (xy, pipeline_sources(name, det))
+            # the front end's grouping, sources and height; its cells from its points (the
+            # grid's occupied ones with input = "occupied"), not its filled footprint
+            own = xy if len(det.points_xy) else None     # candidates alone: footprints
+            for c in det.candidates:
+                m = from_candidate(c, grid.cell_m, own)
+                if m is not None:
+                    given.append(m)
+        elif len(xy):
+            pts[name] = (xy, pipeline_sources(name, det))
     ms = cluster_points(pts, grid, cfg) if pts else []
     if given:
         ms = merge_touching(ms + given, cfg.cluster_gap_m)

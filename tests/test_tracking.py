@@ -166,3 +166,19 @@ def test_tracking_config_is_validated():
     c = parse_config({"tracking": {"enabled": True, "weights": {"novelty": 0.2}}})
     assert c.tracking.enabled and c.tracking.weights.novelty == 0.2
     assert dataclasses.replace(c.tracking, enabled=False).weights.novelty == 0.2
+
+
+def test_a_candidates_cells_are_its_points_not_its_filled_footprint():
+    big = Candidate(x_m=10.0, y_m=0.0, length_m=6.0, width_m=5.0, height_m=0.4, points=900,
+                    confidence=0.9, sources=("geometry",), pipeline="stereo")
+    pts = blob(9.05, 0.05)
+    (m,) = measurements({"stereo": Detections(points_xy=pts, candidates=(big,))},
+                        GridConfig(), TrackingConfig())
+    assert len(m.cells_xy) == 9 and m.length_m == 6.0     # 9 cells, not 60 x 50
+    # with the grid's occupied mask: only points in occupied cells; none -> not this cycle
+    occ = np.zeros((320, 300), bool)
+    assert measurements({"stereo": Detections(points_xy=pts, candidates=(big,))},
+                        GridConfig(), TrackingConfig(), occ) == []
+    # a front end that gives candidates and no points: their footprints
+    (m,) = measurements({"x": Detections(candidates=(big,))}, GridConfig(), TrackingConfig(), occ)
+    assert len(m.cells_xy) > 1000
