@@ -669,9 +669,13 @@ class Soak:
         best = None
         fd_growth = 0
         for inc, ss in segs.items():
-            t_start = starts[inc - 1] if inc - 1 < len(starts) else ss[0]["t"]
-            warm = [s for s in ss if s["t"] - t_start >= 60.0] or ss[len(ss) // 3:]
-            if len(warm) < 5:
+            # warm-up: 30 s after the status socket first answered (imports alone take a
+            # minute on a loaded host); a process needs 60 s after that to be judged
+            up = [s["t"] for s in ss if s.get("state")]
+            if not up:
+                continue
+            warm = [s for s in ss if s["t"] >= up[0] + 30.0 and "fds" in s]
+            if len(warm) < 5 or warm[-1]["t"] - warm[0]["t"] < 60.0:
                 continue
             fd_growth = max(fd_growth, warm[-1]["fds"] - warm[0]["fds"])
             if best is None or warm[-1]["t"] - warm[0]["t"] > best[-1]["t"] - best[0]["t"]:
@@ -726,6 +730,7 @@ class Soak:
             "recoveries": sum(1 for f in self.faults if f.get("recovered_at")),
             "restarts": len(starts) - 1,
             "rss_slope_mb_per_h": None if slope is None else round(slope, 3),
+            "rss_judged_over_s": round(best[-1]["t"] - best[0]["t"]) if best else 0,
             "rss_mb_last": round(self.samples[-1].get("rss_mb", 0.0), 1) if self.samples else None,
             "fd_growth": fd_growth,
             "deadline_misses": overruns,
