@@ -100,6 +100,9 @@ def load(path: str | Path | None = None) -> RgbdClassModel:
         # np.load allocate it): found by tests/fuzz/fuzz_annotations.py, as was zlib.error
         with zipfile.ZipFile(p) as zf:
             unpacked = sum(i.file_size for i in zf.infolist())
+            if any(i.flag_bits & 0x1 for i in zf.infolist()):    # np.load: RuntimeError
+                raise RgbdModelError(f"{where}: has encrypted entries, not a model file",
+                                     key="perception.rgbd.model")
         if unpacked > MAX_MODEL_BYTES:
             raise RgbdModelError(f"{where}: unpacks to {unpacked} bytes, more than a class "
                                  f"model can be ({MAX_MODEL_BYTES})",
