@@ -89,21 +89,27 @@ def evaluate(run: Path, pipeline: str, cfg: Path | None) -> tuple[dict, str]:
     return res, shown
 
 
-ROWS = [  # (label, pipeline, options)
+from appliance.perception.stereo_novelty import PRE_ISSUE_14 as _P14  # noqa: E402
+
+ROWS = [  # (label, pipeline, options); the novelty rows pinned to the stages before issue #14
     ("laser", "laser", {}),
     ("BM", "stereo", {"matcher": "bm"}),
-    ("BM + novelty", "stereo-novelty", {"matcher": "bm", "depth_cue": "off"}),
-    ("BM + novelty + depth cue", "stereo-novelty", {"matcher": "bm", "depth_cue": "bm"}),
+    ("BM + novelty", "stereo-novelty", {**_P14, "matcher": "bm", "depth_cue": "off"}),
+    ("BM + novelty + depth cue", "stereo-novelty", {**_P14, "matcher": "bm", "depth_cue": "bm"}),
     ("SGBM", "stereo", {"matcher": "sgbm"}),
-    ("SGBM + novelty", "stereo-novelty", {"matcher": "sgbm", "depth_cue": "off"}),
-    ("SGBM + novelty + depth cue", "stereo-novelty", {"matcher": "sgbm", "depth_cue": "bm"}),
+    ("SGBM + novelty", "stereo-novelty", {**_P14, "matcher": "sgbm", "depth_cue": "off"}),
+    ("SGBM + novelty + depth cue", "stereo-novelty", {**_P14, "matcher": "sgbm",
+                                                      "depth_cue": "bm"}),
+    ("SGBM + novelty + depth cue + #14 front end", "stereo-novelty", {"matcher": "sgbm",
+                                                                      "depth_cue": "bm"}),
 ]
 try:                                       # LIBELAS, the paper's matcher: optional (GPLv3)
     import elas  # noqa: F401  (tools/install_elas.sh)
     ROWS += [
         ("ELAS", "stereo", {"matcher": "elas"}),
-        ("ELAS + novelty", "stereo-novelty", {"matcher": "elas", "depth_cue": "off"}),
-        ("ELAS + novelty + depth cue", "stereo-novelty", {"matcher": "elas", "depth_cue": "bm"}),
+        ("ELAS + novelty", "stereo-novelty", {**_P14, "matcher": "elas", "depth_cue": "off"}),
+        ("ELAS + novelty + depth cue", "stereo-novelty", {**_P14, "matcher": "elas",
+                                                          "depth_cue": "bm"}),
     ]
 except ImportError:
     pass

@@ -7,7 +7,7 @@ by ``join_cells`` before labelling, the labels read back on the occupied cells o
 component with at least ``min_points`` points is a :class:`~.base.Candidate`:
 
 - footprint: the axis-aligned extent of its points (at least one cell) and its centre;
-- ``height_m``: the 95th percentile of its points' heights above the ground;
+- ``height_m``: the 95th percentile (by rank) of its points' heights above the ground;
 - ``ground_contact``: its lowest points come within ``contact_m`` of the ground (an overhang
   or a mismatch floating in the air does not);
 - ``points``: its point count; ``confidence``: the mean point confidence times a support
@@ -64,32 +64,41 @@ def cluster_candidates(xy: np.ndarray, height: np.ndarray | None = None,
     grown = cv2.dilate(occ, np.ones((2 * join_cells + 1,) * 2, np.uint8)) if join_cells else occ
     nlab, lab = cv2.connectedComponents(grown, connectivity=8, ltype=cv2.CV_32S)
     pl = lab[g[:, 0], g[:, 1]]
-    counts = np.bincount(pl, minlength=nlab)
+    # one sort by (label, height): each label's points are a block, its heights in order
+    # (percentiles by rank), its sums and extents by reduceat: no per-cluster numpy calls
+    hk = np.zeros(len(p)) if h is None else h
+    order = np.lexsort((hk, pl))
+    pls = pl[order]
+    starts = np.flatnonzero(np.r_[True, pls[1:] != pls[:-1]])
+    labels = pls[starts]
+    counts = np.diff(np.r_[starts, len(pls)])
+    po = p[order]
+    lo = np.stack([np.minimum.reduceat(po[:, 0], starts), np.minimum.reduceat(po[:, 1], starts)],
+                  axis=1)
+    hi = np.stack([np.maximum.reduceat(po[:, 0], starts), np.maximum.reduceat(po[:, 1], starts)],
+                  axis=1)
+    csum = np.add.reduceat(c[order], starts)
+    fsum = {k: np.add.reduceat(v[order].astype(np.int64), starts) for k, v in fl.items()}
+    ho = hk[order]
     out = []
-    order = np.argsort(pl, kind="stable")
-    starts = np.searchsorted(pl[order], np.arange(nlab))
-    for L in np.flatnonzero(counts >= min_points):
-        if L == 0:
-            continue
-        sel = order[starts[L]:starts[L] + counts[L]]
-        q = p[sel]
-        lo, hi = q.min(axis=0), q.max(axis=0)
-        ext = np.maximum(hi - lo, cell_m)
-        k = len(sel)
+    for j in np.flatnonzero((counts >= min_points) & (labels > 0)):
+        k = int(counts[j])
+        s0 = starts[j]
+        ext = np.maximum(hi[j] - lo[j], cell_m)
         if h is not None:
-            hh = h[sel]
-            top = float(np.percentile(hh, 95))
-            contact = bool(np.percentile(hh, 5) <= contact_m)
+            top = float(ho[s0 + int(round(0.95 * (k - 1)))])
+            contact = bool(ho[s0 + int(round(0.05 * (k - 1)))] <= contact_m)
         else:
             top, contact = 0.0, True
-        conf = float(c[sel].mean()) * (1.0 - float(np.exp(-k / support_points)))
+        conf = float(csum[j]) / k * (1.0 - float(np.exp(-k / support_points)))
         src = list(base_sources)
-        for name, f in fl.items():
-            if name not in src and np.count_nonzero(f[sel]) >= source_min_share * k:
+        for name, f in fsum.items():
+            if name not in src and f[j] >= source_min_share * k:
                 src.append(name)
-        out.append(Candidate(x_m=float((lo[0] + hi[0]) / 2), y_m=float((lo[1] + hi[1]) / 2),
+        out.append(Candidate(x_m=float((lo[j, 0] + hi[j, 0]) / 2),
+                             y_m=float((lo[j, 1] + hi[j, 1]) / 2),
                              length_m=float(ext[0]), width_m=float(ext[1]), height_m=top,
-                             points=int(k), confidence=round(conf, 4), sources=tuple(src),
+                             points=k, confidence=round(conf, 4), sources=tuple(src),
                              ground_contact=contact, pipeline=pipeline))
     out.sort(key=lambda cd: -cd.points)
     return tuple(out[:max_candidates])

@@ -114,12 +114,24 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
     near_margin: float = _f(1.15, lo=1.0, hi=4.0,
                             doc="near_from_foot: the coarse disparity seen is scaled by this "
                                 "(coarse depth is rough) before it bounds the search")
-    boot_guard: bool = _f(False, doc="beyond the paper (issue #14): until the novelty model's "
+    boot_guard: bool = _f(True, doc="beyond the paper (issue #14): until the novelty model's "
                                      "first update, every frame also gets full-frame dense "
                                      "stereo; what stands above the ground there (candidates of "
                                      "boot_min_points or more) and the learned cue's cells are "
                                      "obstacles of that frame and are kept out of the first "
                                      "update (paper: the first frame is learnt whole)")
+    # issue #14's stages of StereoConfig, on for the product (measured in docs/front-end.md;
+    # PRE_ISSUE_14 below gives the values that reproduce the earlier tables)
+    uniqueness: int = _f(15, lo=0, hi=100, doc="matcher uniqueness ratio (also the depth "
+                                               "cue's coarse BM; before issue #14: 10)")
+    pad_left: bool = _f(True, doc="match the image's leftmost columns too (see "
+                                  "[perception.stereo]; before issue #14: false)")
+    support_min: float = _f(0.5, lo=0.0, hi=1.0, doc="vertical support of obstacle points "
+                                                     "(see [perception.stereo]; before issue "
+                                                     "#14: 0 = off)")
+    dark_level: float = _f(8.0, lo=0.0, hi=255.0, doc="no disparity where the 7x7 mean grey "
+                                                      "level is below this (before issue #14: "
+                                                      "0 = off)")
     model_state: str = _f("auto", doc="where the novelty model persists across restarts: "
                                       "auto = $STATE_DIRECTORY/novelty-<pipeline>.npz when "
                                       "the service has a state directory (systemd), off = "
@@ -127,9 +139,20 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
     boot_min_points: int = _f(30, lo=1, hi=100000,
                               doc="boot_guard: points a candidate needs to be kept out of the "
                                   "first update (fewer: stereo noise, learnt as field)")
+    boot_horizon_cells: int = _f(1, lo=-100, hi=100,
+                                 doc="boot_guard: only cells whose top is at least this many "
+                                     "cells below the horizon row are kept out of the first "
+                                     "update (the sky and the skyline are learnt)")
     boot_support_min: float = _f(0.5, lo=0.0, hi=1.0,
                                  doc="boot_guard: the vertical support (support_min) its "
                                      "points need, whatever support_min is")
+
+
+# The values of issue #14's new stages that give the pipeline as it was before them (the
+# Figure-5 / reproduction tables of docs/stereo-novelty.md: tools/experiments_stereo.py pins
+# them in its rows)
+PRE_ISSUE_14 = {"boot_guard": False, "pad_left": False, "support_min": 0.0, "uniqueness": 10,
+                "dark_level": 0.0}
 
 
 def rescale_mask(mask: np.ndarray, f: int, k: int, out_hw: tuple[int, int]) -> np.ndarray:
@@ -539,7 +562,7 @@ class StereoNoveltyPipeline(Pipeline):
         # 640 px): their body stays out of the model.
         vh = self._horizon_row(calib, vehicle) * (k / kd)
         top = np.arange(rows) * res.cell_px
-        exclude[top < vh + res.cell_px, :] = False
+        exclude[top < vh + o.boot_horizon_cells * res.cell_px, :] = False
         cue = extra.get("learned")
         if cue is not None and np.any(cue):
             if cue.shape != (rows, cols):
