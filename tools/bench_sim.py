@@ -1,7 +1,8 @@
 """Time the simulator's sensors: CPU ms per stereo pair (scale 1.0 and 0.5), laser scan, RGB-D frame.
 
     .venv/bin/python tools/bench_sim.py [--frames 8] [--scene stubble-day] [--stages] [--json]
-    taskset -c 1 .venv/bin/python tools/bench_sim.py --json        # the issue-13 figures
+                                        [--baseline] [--engine numba|numpy]
+    taskset -c 1 .venv/bin/python tools/bench_sim.py --json --baseline   # the issue-13 figures
 
 Times are CPU time of this process (``time.process_time``: every thread's CPU, so threads cannot
 hide work) per frame, p50 and best of the frames, with the process pinned to ONE core (``--cpu``,
@@ -19,7 +20,9 @@ between frames (so the frames differ as they do in a drive).
   ``rgbd_640x480_greenhouse_cpu_ms`` the same in the greenhouse;
 - ``laser_cpu_ms``: one 541-beam laser scan;
 - ``*_best_cpu_ms``: the best frame of each; ``targets_ms`` the issue's targets; and the
-  settings (frames, scene, seed, cpu affinity, commit).
+  settings (frames, scene, seed, cpu affinity, commit, the 1-minute load average);
+- with ``--baseline``: ``numpy_baseline_cpu_ms`` (the whole-array numpy renderer, the
+  simulator before numba, timed in the same run) and ``speedup_vs_numpy``.
 """
 from __future__ import annotations
 
@@ -79,6 +82,9 @@ def main(argv=None) -> int:
                     help="pin to this core (default 1; -1: leave the affinity alone)")
     ap.add_argument("--stages", action="store_true", help="per-stage times of the camera renderer")
     ap.add_argument("--json", action="store_true", help="print the figures as one JSON object")
+    ap.add_argument("--baseline", action="store_true",
+                    help="also time the whole-array numpy renderer in this run (ratios)")
+    ap.add_argument("--engine", choices=("numba", "numpy"), default="numba")
     a = ap.parse_args(argv)
     if a.frames < 1:
         print("bench_sim: error: --frames must be >= 1", file=sys.stderr)
@@ -90,6 +96,7 @@ def main(argv=None) -> int:
             print(f"bench_sim: error: cannot pin to core {a.cpu} ({e}); use --cpu -1",
                   file=sys.stderr)
             return 2
+    render.ENGINE = a.engine
     rows = []
     res: dict = {}
     stages = {}
@@ -135,11 +142,45 @@ def main(argv=None) -> int:
     rows.append(("RGB-D frame 640x480 (greenhouse)", t))
     res["rgbd_640x480_greenhouse_cpu_ms"] = t
 
+    base: dict = {}
+    if a.baseline:
+        # the same work with the whole-array numpy renderer, in this run (a ratio is what the
+        # shared machine's load cannot distort much)
+        eng = render.ENGINE
+        render.ENGINE = "numpy"
+        try:
+            nb = max(2, a.frames // 2)
+            f = SimField(a.scene, seed=a.seed, sensors=("stereo", "laser"), stereo_scale=0.5)
+
+            def fn(st, sq):
+                f.render_stereo(st, sq)
+                f.render_laser(st, sq)
+            base["stereo_640x512_cpu_ms"] = bench(fn, f, nb, step_inside=True)
+            f = SimField(a.scene, seed=a.seed, sensors=("stereo",), stereo_scale=1.0)
+            base["stereo_1280x1024_cpu_ms"] = bench(f.render_stereo, f, nb)
+            f = SimField(a.scene, seed=a.seed, sensors=("rgbd",))
+            base["rgbd_640x480_cpu_ms"] = bench(f.render_rgbd, f, nb)
+            f = SimField(a.scene, seed=a.seed, sensors=("laser",))
+            base["laser_cpu_ms"] = bench(f.render_laser, f, nb * 4)
+        finally:
+            render.ENGINE = eng
+        for k, t in base.items():
+            rows.append((f"numpy baseline: {k}", t))
     if a.json:
         out: dict = {}
         for k, t in res.items():
             out[k] = round(statistics.median(t), 1)
             out[k.replace("_cpu_ms", "_best_cpu_ms")] = round(min(t), 1)
+        if base:
+            out["numpy_baseline_cpu_ms"] = {k: round(statistics.median(t), 1)
+                                            for k, t in base.items()}
+            out["speedup_vs_numpy"] = {k: round(statistics.median(t) / max(out[k], 1e-9), 2)
+                                       for k, t in base.items()}
+        out["engine"] = render.ENGINE
+        try:
+            out["load_avg_1min"] = round(os.getloadavg()[0], 1)
+        except OSError:
+            pass
         out["stereo_640x512_includes"] = "stereo pair + 541-beam laser scan + vehicle step"
         out["targets_ms"] = TARGETS_MS
         out["met"] = {k: out[k] <= v for k, v in TARGETS_MS.items()}

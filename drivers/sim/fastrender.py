@@ -26,6 +26,8 @@ import numpy as np
 from numba import njit
 
 M32 = 0xFFFFFFFF
+# fast-math without "no NaNs / no infs": NaN marks a sample the march did not evaluate
+FM = {"arcp", "contract", "afn", "reassoc", "nsz"}
 NO_HIT = 1 << 30
 
 # obstacle parameter rows (float64): see world.World.kernel_params
@@ -37,7 +39,7 @@ CL_OTHER, CL_DRUM, CL_CRATE = range(3)
 # ---------------------------------------------------------------------------------------------
 # hashing / noise / textures (bit-identical to world.py's integer hashes)
 # ---------------------------------------------------------------------------------------------
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FM)
 def mix32(h):
     h &= M32
     h ^= h >> 16
@@ -48,7 +50,7 @@ def mix32(h):
     return h
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FM)
 def hash2(i, j, salt):
     a = np.int64(i) & M32
     b = np.int64(j) & M32
@@ -56,14 +58,14 @@ def hash2(i, j, salt):
     return mix32(h)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FM)
 def unit(h, k):
     if k:
         h = mix32(h + ((k * 0x27D4EB2F) & M32))
     return (h >> 8) * (1.0 / (1 << 24))
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FM)
 def value_noise(tile, x, y, cell):
     fx = x / cell
     fy = y / cell
@@ -83,7 +85,7 @@ def value_noise(tile, x, y, cell):
     return a + (b - a) * ty
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FM)
 def texture(flat, sizes, offsets, u_m, v_m, mpt, footprint):
     """Nearest texel at the mip level of the footprint (world.sample_texture)."""
     ratio = footprint / mpt
@@ -102,7 +104,7 @@ def texture(flat, sizes, offsets, u_m, v_m, mpt, footprint):
 # ---------------------------------------------------------------------------------------------
 # geometry
 # ---------------------------------------------------------------------------------------------
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FM)
 def ground(G, gp, x, y):
     """Bilinear ground grid: gp = (x0, y0, 1/cell, nx, ny)."""
     fx = (x - gp[0]) * gp[2]
@@ -127,7 +129,7 @@ def ground(G, gp, x, y):
     return a + (b - a) * ty
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FM)
 def tuft(tp, x, y):
     """Stubble tuft height above the ground (world._tufts). tp = (row_off, row_spacing,
     tuft_spacing, salt51, salt5A, height_scale, gap)."""
@@ -155,7 +157,7 @@ def tuft(tp, x, y):
     return height * math.sqrt(math.sqrt(1.0 - d2)) * (0.55 + 0.45 * rag)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FM)
 def bushes(bp, tile77, x, y):
     """Greenhouse (world._bushes): (bush height, leaf height). bp = (path_half_width, period,
     saltB5, salt1EAF, x_lo, x_hi)."""
@@ -189,7 +191,7 @@ def bushes(bp, tile77, x, y):
     return hbush, hleaf
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FM)
 def terrain(kind, G, gp, tp, bp, tile77, x, y):
     """(height, material) of ground + stubble/bushes; material 0 ground, 1 stubble, 2 bush,
     3 leaf."""
@@ -207,7 +209,7 @@ def terrain(kind, G, gp, tp, bp, tile77, x, y):
     return g, 0
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FM)
 def obstacle_height(o, x, y):
     """Top height above z0 of an obstacle row (0 outside its footprint)."""
     dx = x - o[OX]
@@ -242,7 +244,7 @@ def obstacle_height(o, x, y):
 # ---------------------------------------------------------------------------------------------
 # the camera
 # ---------------------------------------------------------------------------------------------
-@njit(cache=True)
+@njit(cache=True, error_model="numpy", fastmath=FM)
 def march(kind, G, gp, tp, bp, tile77, top_m, obs, ocols, C, f2x, f2y, r2x, r2y, fx, fy, cxv,
           cyv, Wv, Hv, t, h_out, m_out, jhit, rmin):
     """Per column: heights/materials at the samples (NaN where not evaluated: cannot be seen,
@@ -320,7 +322,7 @@ def march(kind, G, gp, tp, bp, tile77, top_m, obs, ocols, C, f2x, f2y, r2x, r2y,
             m_out[c, j2] = 0
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FM)
 def _h_at(kind, G, gp, tp, bp, tile77, h, c, j, C, dxc, dyc, t):
     v = h[c, j]
     if v == v:
@@ -329,10 +331,10 @@ def _h_at(kind, G, gp, tp, bp, tile77, h, c, j, C, dxc, dyc, t):
     return hh
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy", fastmath=FM)
 def shade(kind, G, gp, tp, bp, tile77, obs, salt, C, f2x, f2y, r2x, r2y, fx, fy, cxv, cyv,
           Wv, Hv, t, h, mat, jhit, mode, sun, light_p, tex_grass, tex_gravel, sizes, offsets,
-          tiles, sky_bgr, hor_bgr, img, tv, mv, lum, sh_obs, Hr, Wr, Hr_):
+          tiles, sky_bgr, hor_bgr, img, tv, mv, lum, sh_obs, Hr, Wr, Hr_, need_depth):
     """Per pixel: hit point, normal, albedo, light. ``tiles``: value-noise tiles by salt index
     (0: 0x9, 1: 0xA, 2: 0xB, 3: 0xC, 4: cloud); light_p = (strobe_power, cloud, dusk, wind_x,
     wind_y, time_s, cloud_cell_m)."""
@@ -371,9 +373,10 @@ def shade(kind, G, gp, tp, bp, tile77, obs, salt, C, f2x, f2y, r2x, r2y, fx, fy,
                 img[c, r, 0] = sky[r, 0]
                 img[c, r, 1] = sky[r, 1]
                 img[c, r, 2] = sky[r, 2]
-                tv[c, r] = 0.0
-                mv[c, r] = -1.0
-                lum[c, r] = 0.0
+                if need_depth:
+                    tv[c, r] = 0.0
+                    mv[c, r] = -1.0
+                    lum[c, r] = 0.0
                 continue
             a = (c - cxv) / fx
             dxc = f2x + a * r2x
@@ -490,12 +493,13 @@ def shade(kind, G, gp, tp, bp, tile77, obs, salt, C, f2x, f2y, r2x, r2y, fx, fy,
             img[c, r, 0] = r0
             img[c, r, 1] = r1
             img[c, r, 2] = r2
-            tv[c, r] = th
-            mv[c, r] = pm
-            lum[c, r] = b0 * 0.114 + b1 * 0.587 + b2 * 0.299
+            if need_depth:
+                tv[c, r] = th
+                mv[c, r] = pm
+                lum[c, r] = b0 * 0.114 + b1 * 0.587 + b2 * 0.299
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FM)
 def fsin(x):
     """sin(x) to ~1e-6 for any x (range reduction to [-pi, pi], then a polynomial)."""
     q = x * (1.0 / (2 * math.pi))
@@ -510,7 +514,7 @@ def fsin(x):
     return y * (1.0 - y2 * (1.0 / 6 - y2 * (1.0 / 120 - y2 * (1.0 / 5040 - y2 * (1.0 / 362880)))))
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FM)
 def _obs_index(obs, pm):
     """Row of the obstacle whose material code is pm (obs[:, OCLS + 1] holds its world index)."""
     k = pm - 16
@@ -520,7 +524,7 @@ def _obs_index(obs, pm):
     return 0
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FM)
 def shadow(sh, sun, px, py, pz):
     """render._shadows for one ground point: sh rows = (x, y, r, top, reach)."""
     horiz = math.sqrt(sun[0] * sun[0] + sun[1] * sun[1])
@@ -544,7 +548,7 @@ def shadow(sh, sun, px, py, pz):
     return 1.0
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FM)
 def albedo(kind, G, gp, tp, bp, tile77, obs, salt, x, y, z, pm, foot, tex_grass, tex_gravel,
            sizes, offsets, tiles, straw, soil, litter, litter_w, hscale):
     """world.World.albedo for one point: BGR."""
@@ -635,7 +639,7 @@ def albedo(kind, G, gp, tp, bp, tile77, obs, salt, x, y, z, pm, foot, tex_grass,
 # ---------------------------------------------------------------------------------------------
 # exposure, laser
 # ---------------------------------------------------------------------------------------------
-@njit(cache=True)
+@njit(cache=True, error_model="numpy", fastmath=FM)
 def expose(rad, pool, dy, dx, flip, night, out):
     H, W = rad.shape[0], rad.shape[1]
     for r in range(H):
@@ -655,7 +659,7 @@ def expose(rad, pool, dy, dx, flip, night, out):
                 out[r, c, q] = np.uint8(v)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy", fastmath=FM)
 def laser(kind, G, gp, tp, bp, tile77, max_terrain, obs, O, dirs, t, range_max, out):
     N = dirs.shape[0]
     S = t.shape[0]
@@ -697,3 +701,27 @@ def laser(kind, G, gp, tp, bp, tile77, max_terrain, obs, O, dirs, t, range_max, 
                         best = tt
                         break
         out[b] = best if best <= range_max else np.nan
+
+
+@njit(cache=True, error_model="numpy", fastmath=FM)
+def kinect(z, lum, mat, edge, shiny, pn, pu, dy, dx, bf, min_range, max_range, out):
+    """render.kinect_depth's per-pixel part: quantised z-depth with noise, holes (0) on edges,
+    shiny materials (``shiny[mat + 1]``), dark surfaces (80 %), 0.2 % speckle and out of
+    range. pn/pu: pools of unit normals / uniforms read at a window (dy, dx)."""
+    H, W = z.shape
+    for r in range(H):
+        for c in range(W):
+            zz = z[r, c]
+            if zz < min_range or zz > max_range or edge[r, c]:
+                out[r, c] = 0.0
+                continue
+            m = mat[r, c]
+            if m >= -1 and m + 1 < shiny.shape[0] and shiny[m + 1]:
+                out[r, c] = 0.0
+                continue
+            sp = pu[dy + r, dx + c]
+            if sp < 0.002 or (lum[r, c] < 0.06 and sp < 0.8):
+                out[r, c] = 0.0
+                continue
+            q = bf / round(bf / max(zz, 1e-3))
+            out[r, c] = q + pn[dy + r, dx + c] * 1.5e-3 * q * q

@@ -170,8 +170,8 @@ def _render_view_fast(world, light, centre, r_opt2world, cam, t_max, t_min, rel_
         idx.append(k)
     obs = world.obstacle_rows(idx)
     ocols = _column_intervals(world, C, yaw, a, t, t_min, t_max, idx)
-    h = np.empty((Wv, S), np.float64)
-    mat = np.empty((Wv, S), np.int32)
+    h = np.empty((Wv, S), np.float32)
+    mat = np.empty((Wv, S), np.int16)
     jhit = np.empty((Wv, Hv), np.int32)                 # transposed: [column, row]
     Kv = np.array([[fx, 0, cxv], [0, fy, cyv], [0, 0, 1.0]])
     Hm = Kv @ M @ Kinv                                  # real pixel -> virtual pixel
@@ -210,14 +210,15 @@ def _render_view_fast(world, light, centre, r_opt2world, cam, t_max, t_min, rel_
     light_p = np.array([light.strobe_power, light.cloud, light.dusk, light.wind_mps[0],
                         light.wind_mps[1], world.time_s, CLOUD_CELL_M], np.float64)
     img = np.empty((Wv, Hv, 3), np.float32)             # transposed: [column, row]
-    tv = np.empty((Wv, Hv), np.float32)
-    mv = np.empty((Wv, Hv), np.float32)
-    lum = np.empty((Wv, Hv), np.float32)
+    dshape = (Wv, Hv) if need_depth else (1, 1)
+    tv = np.empty(dshape, np.float32)
+    mv = np.empty(dshape, np.float32)
+    lum = np.empty(dshape, np.float32)
     fr.shade(kp["kind"], kp["G"], kp["gp"], kp["tp"], kp["bp"], kp["tile77"], obs, kp["salt"], C,
              f2x, f2y, r2x, r2y, fx, fy, cxv, cyv, Wv, Hv, t, h, mat, jhit, mode, sun, light_p,
              kp["grass"], kp["gravel"], kp["sizes"], kp["offsets"], kp["tiles"],
              np.asarray(world.sky_bgr, np.float64), np.asarray(world.horizon_bgr, np.float64),
-             img, tv, mv, lum, sh, Hr, float(W_), float(H_))
+             img, tv, mv, lum, sh, Hr, float(W_), float(H_), bool(need_depth))
     _T("shade")
     Hm = np.array([[0, 1, 0], [1, 0, 0], [0, 0, 1.0]]) @ Hm     # the buffers are transposed
     dsize = (cam.width, cam.height)
@@ -559,6 +560,8 @@ def kinect_depth(view: View, world: World, rng: np.random.Generator, min_range: 
                  max_range: float, fx: float) -> np.ndarray:
     """Kinect-class z-depth: noise growing with z², disparity-like quantisation, holes (0) at
     depth discontinuities, on dark and shiny surfaces, and outside the working range."""
+    if ENGINE == "numba":
+        return _kinect_depth_fast(view, world, rng, min_range, max_range, fx)
     z = view.zdepth.astype(np.float32).copy()
     valid = (z >= min_range) & (z <= max_range)
     # quantisation of a structured-light disparity (1/8 px of a 7.5 cm baseline)
@@ -577,6 +580,37 @@ def kinect_depth(view: View, world: World, rng: np.random.Generator, min_range: 
     holes = edge | shiny | (dark & (speckle < 0.8)) | (speckle < 0.002)
     zq[holes | ~valid] = 0.0
     return zq
+
+
+_DEPTH_POOL: dict = {}
+
+
+def _kinect_depth_fast(view, world, rng, min_range, max_range, fx):
+    """kinect_depth with the per-pixel work compiled and the noise read from seeded pools at a
+    random window (as the colour noise is)."""
+    from . import fastrender as fr
+    z = np.ascontiguousarray(view.zdepth, np.float32)
+    h, w = z.shape
+    pools = _DEPTH_POOL.get((h, w))
+    if pools is None:
+        g = np.random.default_rng(54321)
+        pools = (g.standard_normal((h + 61, w + 67), dtype=np.float32),
+                 g.random((h + 61, w + 67), dtype=np.float32))
+        _DEPTH_POOL[(h, w)] = pools
+    dy, dx = int(rng.integers(0, 61)), int(rng.integers(0, 67))
+    zmax = cv2.dilate(z, np.ones((3, 3), np.uint8))
+    zmin = cv2.erode(z, np.ones((3, 3), np.uint8))
+    edge = (zmax - zmin) > np.float32(0.04) * np.maximum(zmin, 0.5)
+    edge = cv2.dilate(edge.astype(np.uint8), np.ones((3, 5), np.uint8), anchor=(3, 1))
+    shiny = np.zeros(MAT_OBSTACLE + len(world.obstacles) + 1, np.bool_)
+    for k, o in enumerate(world.obstacles):
+        if o.shiny:
+            shiny[MAT_OBSTACLE + k + 1] = True
+    out = np.empty((h, w), np.float32)
+    fr.kinect(z, np.ascontiguousarray(view.albedo_lum, np.float32),
+              np.ascontiguousarray(view.mat, np.int16), edge, shiny, pools[0], pools[1], dy, dx,
+              float(np.float32(0.075 * fx * 8)), float(min_range), float(max_range), out)
+    return out
 
 
 def cast_laser(world: World, origin: np.ndarray, dirs: np.ndarray, range_max: float,
