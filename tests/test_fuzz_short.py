@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-from tests.fuzz.common import TARGETS, corpus_files, mutations, time_limit
+from tests.fuzz.common import TARGETS, corpus_files, mutations, quiet_logs, time_limit
 
 SECONDS = 1.5          # of mutations per target, after the corpus
 LIMIT_S = 10.0         # one input (the status target's snapshot takes ~0.1 s)
@@ -29,6 +29,11 @@ def _crash(target: str, data: bytes) -> str:
 
 @pytest.mark.parametrize("target", list(TARGETS))
 def test_fuzz_target_short(target):
+    with quiet_logs():
+        _short_run(target)
+
+
+def _short_run(target):
     mod = importlib.import_module("tests.fuzz." + TARGETS[target])
     if hasattr(mod, "setup"):
         mod.setup()

@@ -105,7 +105,15 @@ def mutations(seeds: list[bytes], n: int, seed: int = 0, max_len: int = 1 << 16)
         yield bytes(data[:max_len])
 
 
-import logging as _logging  # noqa: E402
-
-# every refused input is a logged fault on the box; here that is millions of lines
-_logging.getLogger("fieldguard").setLevel(_logging.CRITICAL)
+@contextmanager
+def quiet_logs():
+    """Every refused input is a logged fault on the box; fuzzing, that is millions of lines.
+    (Only while fuzzing: set at import, it silenced other tests' log assertions.)"""
+    import logging
+    lg = logging.getLogger("fieldguard")
+    old = lg.level
+    lg.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        lg.setLevel(old)

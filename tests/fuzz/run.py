@@ -6,7 +6,7 @@ import importlib
 import os
 import sys
 
-from tests.fuzz.common import ROOT, TARGETS
+from tests.fuzz.common import ROOT, TARGETS, quiet_logs
 
 
 def main() -> None:
@@ -33,7 +33,8 @@ def main() -> None:
     # libFuzzer's -merge runs argv[0] again: tools/fuzz.sh points it at an executable wrapper
     argv0 = os.environ.get("FUZZ_ARGV0") or sys.argv[0]
     atheris.Setup([argv0] + sys.argv[2:], mod.one_input)
-    atheris.Fuzz()
+    with quiet_logs():
+        atheris.Fuzz()
 
 
 if __name__ == "__main__":
