@@ -567,4 +567,10 @@ def format_table(result: dict) -> str:
             f"fp cells/frame {_fmt(result['fp_cells_per_frame'])}",
             f"time per frame {_fmt(result['ms_per_frame'])} ms  "
             f"(p50 {_fmt(result.get('ms_p50'))}, p99 {_fmt(result.get('ms_p99'))})"]
+    if "false_stop_frames" in result:
+        tail.insert(1, f"decision {result.get('decision', '?')}: false-stop frames "
+                       f"{result['false_stop_frames']}  missed-stop frames "
+                       f"{result['missed_stop_frames']} (of {result['stop_zone_frames']} with "
+                       f"an obstacle in the stop zone)  path recall "
+                       f"{_fmt(result.get('path_recall'), pct=True)}")
     return "\n".join(head + table + tail)

@@ -185,3 +185,10 @@ def test_default_pipelines_follow_the_sensors_and_the_config(tmp_path):
     Info.sensors = ()
     with pytest.raises(Exception, match="no sensor"):
         default_pipelines(Info)
+
+
+def test_the_table_names_false_and_missed_stops(tmp_path):
+    run = make_run(tmp_path)
+    p = eval_cli(str(run), "--pipeline", "laser", "--config", str(tmp_path / "box.toml"))
+    assert p.returncode == 0, p.stderr
+    assert "decision cells: false-stop frames 19  missed-stop frames 5" in p.stdout
