@@ -677,7 +677,12 @@ class Soak:
             warm = [s for s in ss if s["t"] >= up[0] + 30.0 and "fds" in s]
             if len(warm) < 5 or warm[-1]["t"] - warm[0]["t"] < 60.0:
                 continue
-            fd_growth = max(fd_growth, warm[-1]["fds"] - warm[0]["fds"])
+            # a leak raises the floor; a file or socket open for a moment (an incident being
+            # written, a status request, a reconnect) is no growth: the lowest count in the
+            # first 30 s after warm-up against the lowest in the last 30 s
+            head = [x["fds"] for x in warm if x["t"] <= warm[0]["t"] + 30.0]
+            tail = [x["fds"] for x in warm if x["t"] >= warm[-1]["t"] - 30.0]
+            fd_growth = max(fd_growth, min(tail) - min(head))
             if best is None or warm[-1]["t"] - warm[0]["t"] > best[-1]["t"] - best[0]["t"]:
                 best = warm
         slope = None
