@@ -24,7 +24,7 @@ def write_sim_run(scene: str, frames: int, out: str | Path, seed: int = 0,
 
     Open loop: the vehicle is never told STOP, unless ``stop_before_collisions`` (then a perfect
     oracle brakes it before each obstacle on its path). ``sensors`` defaults to all three, or
-    ``("rgbd",)`` for the greenhouse. ``progress(i, n)`` is called after each frame. Writes
+    ``("rgbd",)`` for the greenhouse kinds. ``progress(i, n)`` is called after each frame. Writes
     ``preview.png`` (first frame + map) beside the run's files. Returns the folder.
     """
     from drivers.runfolder import RunWriter   # noqa: PLC0415 (kept lazy: only this needs it)
@@ -34,7 +34,7 @@ def write_sim_run(scene: str, frames: int, out: str | Path, seed: int = 0,
     if frames < 1:
         raise ValueError("frames must be >= 1")
     if sensors is None:
-        sensors = ("rgbd",) if scene == "greenhouse" else ("stereo", "laser", "rgbd")
+        sensors = ("rgbd",) if scene.startswith("greenhouse") else ("stereo", "laser", "rgbd")
     rate_hz = 10.0
     field = SimField(scene, seed=seed, sensors=tuple(sensors), stereo_scale=stereo_scale,
                      rate_hz=rate_hz)
