@@ -84,8 +84,10 @@ def cmd_selftest(a) -> int:
         try:
             doc = request_json(a.socket, "selftest")
             return _print_selftest(doc["devices"], "asked the running daemon")
-        except ConnectionError:
-            pass
+        except ConnectionError as exc:
+            if "did not answer" in str(exc):   # a daemon is there, busy: never open its devices
+                raise FieldguardError(f"{exc}: it runs but is busy; try again (selftest never "
+                                      f"opens the devices a running daemon owns)") from None
     from appliance.config import load_config
     from appliance.daemon import Daemon, selftest_devices, sim_config
     path = a.config or (DEFAULT_CONFIG if Path(DEFAULT_CONFIG).exists() else None)
