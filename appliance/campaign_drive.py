@@ -379,8 +379,10 @@ class Drive:
         samples = None
         for nd in self._novelty:
             u = nd.updater
-            if self.sync_updates and u is not None:
-                u.wait_idle(30.0)
+            if self.sync_updates and u is not None and not u.wait_idle(600.0):
+                # a wait that gave up would let the next frame see the old model: the drive
+                # would no longer be reproducible (seen at load 50 with a 30 s wait)
+                raise RuntimeError("the novelty model's update did not finish in 600 s")
             if self.model_bound is None:
                 for det in res.detections.values():
                     if "grid" in det.debug:
