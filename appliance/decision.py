@@ -52,9 +52,19 @@ def _overlap_x(t: TrackView, x0: float, x1: float, half_width: float, dx: float 
             and abs(y) - t.width_m / 2 <= half_width)
 
 
-def assess_tracks(tracks: list[TrackView], cells_xy: np.ndarray, speed_mps: float, cfg: Config
-                  ) -> ZoneVerdict:
-    """The zone verdict on confirmed tracks (see the module doc)."""
+def _cells_in(c: np.ndarray, x0: float, x1: float, half_width: float, dx: float = 0.0,
+              dy: float = 0.0) -> bool:
+    if not len(c):
+        return False
+    x, y = c[:, 0] + dx, c[:, 1] + dy
+    return bool(np.any((x >= x0) & (x <= x1) & (np.abs(y) <= half_width)))
+
+
+def assess_tracks(tracks: list[TrackView], cells_xy: np.ndarray, speed_mps: float, cfg: Config,
+                  cells_by_id: dict[int, np.ndarray] | None = None) -> ZoneVerdict:
+    """The zone verdict on confirmed tracks (see the module doc). ``cells_by_id``: each
+    track's cells; a track with cells is in a zone when one of its cells is (a front end's
+    candidate can be far larger than what stands in it), else when its footprint is."""
     z, tc = cfg.zones, cfg.tracking
     stop_len = stop_length(speed_mps, z)
     slow_len = stop_len + z.slow_extra_m
@@ -68,24 +78,33 @@ def assess_tracks(tracks: list[TrackView], cells_xy: np.ndarray, speed_mps: floa
             continue
         if len(z.exclusion) and not len(drop_excluded(np.array([[t.x_m, t.y_m]]), z)):
             continue
-        in_stop = _overlap_x(t, f, f + stop_len, z.half_width_m)
-        in_slow = not in_stop and _overlap_x(t, f + stop_len, f + slow_len, z.half_width_m)
+        tc_ = None if cells_by_id is None else cells_by_id.get(t.id)
+        if tc_ is not None and len(tc_):
+            def inside(x0, x1, dx=0.0, dy=0.0, c=tc_):
+                return _cells_in(c, x0, x1, z.half_width_m, dx, dy)
+        else:
+            def inside(x0, x1, dx=0.0, dy=0.0, t=t):
+                return _overlap_x(t, x0, x1, z.half_width_m, dx, dy)
+        in_stop = inside(f, f + stop_len)
+        in_slow = not in_stop and inside(f + stop_len, f + slow_len)
         moving = math.hypot(t.vx_mps, t.vy_mps) >= tc.predict_min_mps
         if not in_stop and moving:
             for s in steps:
-                if _overlap_x(t, f, f + stop_len, z.half_width_m, t.vx_mps * s, t.vy_mps * s):
+                if inside(f, f + stop_len, t.vx_mps * s, t.vy_mps * s):
                     in_stop = True
                     stop_pred[t.id] = float(s)
                     break
         if not in_stop and not in_slow and moving:
             for s in steps:
-                if _overlap_x(t, f + stop_len, f + slow_len, z.half_width_m, t.vx_mps * s,
-                              t.vy_mps * s):
+                if inside(f + stop_len, f + slow_len, t.vx_mps * s, t.vy_mps * s):
                     in_slow = True
                     slow_pred[t.id] = float(s)
                     break
         if in_stop or in_slow:
-            ahead = max(0.0, t.x_m - t.length_m / 2 - f)
+            if tc_ is not None and len(tc_):
+                ahead = max(0.0, float(tc_[:, 0].min()) - f)
+            else:
+                ahead = max(0.0, t.x_m - t.length_m / 2 - f)
             (stop if in_stop else slow).append((ahead, t))
             nearest = ahead if nearest is None else min(nearest, ahead)
 
@@ -135,8 +154,9 @@ class DecisionCore:
         else:
             occ = self.grid.occupied_mask() if self.cfg.tracking.input == "occupied" else None
             tracks = self.tracker.update(detections, vehicle, now_ns, occ)
-            cells = self.tracker.confirmed_cells()
-            pic = Picture(cells, assess_tracks(tracks, cells, speed, self.cfg), speed,
+            by_id = self.tracker.cells_by_track()
+            cells = np.concatenate(list(by_id.values())) if by_id else np.zeros((0, 2))
+            pic = Picture(cells, assess_tracks(tracks, cells, speed, self.cfg, by_id), speed,
                           grid_cells, tracks)
         self.last = pic
         return pic

@@ -589,24 +589,25 @@ class Tracker:
                 hits=t.hits, age_s=(self.stamp_ns - t.born_ns) / 1e9))
         return out
 
+    def cells_by_track(self) -> dict[int, np.ndarray]:
+        """Each confirmed track's cells this cycle (vehicle frame), as confirmed_cells()."""
+        return {t.id: self._cells(t) for t in self.tracks if t.confirmed}
+
     def confirmed_cells(self) -> np.ndarray:
         """The box's obstacle output as cells (vehicle frame): the cells of every confirmed
         track's candidate this frame; for a confirmed track held unseen, its footprint."""
-        parts = []
-        cell = self.grid.cell_m
-        for t in self.tracks:
-            if not t.confirmed:
-                continue
-            if len(t.cells_xy) and t.last_hit_ns == self.stamp_ns:
-                parts.append(np.asarray(t.cells_xy, dtype=np.float64))
-            elif len(t.cells_world):   # held unseen: its last cells, where it is now
-                c = self.to_vehicle(t.cells_world + t.state[:2])
-                parts.append((np.floor(c / cell) + 0.5) * cell)
-            else:
-                p = self.to_vehicle(t.state[None, :2])[0]
-                parts.append(_rect_cells(p[0] - t.length_m / 2, p[0] + t.length_m / 2 - 1e-9,
-                                         p[1] - t.width_m / 2, p[1] + t.width_m / 2 - 1e-9,
-                                         cell))
+        parts = [self._cells(t) for t in self.tracks if t.confirmed]
         if not parts:
             return np.zeros((0, 2))
         return np.concatenate(parts)
+
+    def _cells(self, t: Track) -> np.ndarray:
+        cell = self.grid.cell_m
+        if len(t.cells_xy) and t.last_hit_ns == self.stamp_ns:
+            return np.asarray(t.cells_xy, dtype=np.float64)
+        if len(t.cells_world):   # held unseen: its last cells, where it is now
+            c = self.to_vehicle(t.cells_world + t.state[:2])
+            return (np.floor(c / cell) + 0.5) * cell
+        p = self.to_vehicle(t.state[None, :2])[0]
+        return _rect_cells(p[0] - t.length_m / 2, p[0] + t.length_m / 2 - 1e-9,
+                           p[1] - t.width_m / 2, p[1] + t.width_m / 2 - 1e-9, cell)

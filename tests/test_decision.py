@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 
 from appliance.config import Config, GateConfig, GridConfig, TrackingConfig, ZonesConfig
 from appliance.decision import DecisionCore, assess_tracks
@@ -199,3 +200,19 @@ def test_the_sectors_for_obstacle_distance_carry_only_confirmed_tracks():
         seen.append((bool(pic.objects), any(s.distance_m for s in pic.verdict.sectors)))
     assert seen[0] == (False, False) and seen[-1] == (True, True)
     assert all(a == b for a, b in seen)
+
+
+def test_a_large_candidate_is_in_the_stop_zone_only_where_its_cells_are():
+    """A front end's candidate can be metres larger than what stands in it: with its cells
+    known, a track is in a zone where a cell of it is, not wherever its footprint reaches."""
+    cfg = tracks_cfg()
+    big = TrackView(id=3, x_m=8.0, y_m=0.0, length_m=9.0, width_m=4.0, height_m=1.0,
+                    vx_mps=0.0, vy_mps=0.0, confidence=0.9, sources=("geometry",),
+                    confirmed=True, coasting=False, hits=9, age_s=1.0)
+    assert assess_tracks([big], np.zeros((0, 2)), 0.0, cfg).in_stop == 1      # footprint only
+    far = {3: np.array([[10.05, 0.05], [10.15, 0.05]])}
+    v = assess_tracks([big], far[3], 0.0, cfg, far)
+    assert v.in_stop == 0 and v.in_slow == 0
+    near = {3: np.array([[4.05, 0.05]])}
+    v = assess_tracks([big], near[3], 0.0, cfg, near)
+    assert v.in_stop == 1 and v.nearest_m == pytest.approx(1.45)
