@@ -1,5 +1,6 @@
 """Obstacle candidates from obstacle points (appliance/perception/candidates.py)."""
 import numpy as np
+import pytest
 
 from appliance.perception.candidates import cluster_candidates
 
@@ -93,3 +94,33 @@ def test_rgbd_pipeline_candidates_on_the_simulated_greenhouse():
     cd = max(near, key=lambda c: c.points)
     assert "geometry" in cd.sources and cd.pipeline == "rgbd" and cd.ground_contact
     assert 0.15 < cd.height_m < ob["height_m"] + 0.2
+
+
+def test_fused_pipeline_hands_on_every_part_s_candidates():
+    from appliance.perception import SensorInputs
+    from appliance.perception.fused import FusedPipeline
+    from appliance.perception.laser import LaserPipeline
+    from hal.types import LaserGeometry, LaserScan, Mount
+    geo = LaserGeometry(-10.0, 0.5, 41, 30.0, Mount(x_m=1.0, z_m=0.7))
+    r = np.full(41, np.nan, np.float32)
+    r[18:23] = 6.0
+    f = FusedPipeline([LaserPipeline(), LaserPipeline()])
+    det = f.process(SensorInputs(0, laser=LaserScan(0, 0, r, geo)))
+    assert len(det.candidates) == 2 and all(c.pipeline == "laser" for c in det.candidates)
+
+
+def test_new_front_end_options_are_validated():
+    from appliance.config import parse_config
+    from hal.errors import ConfigError
+    cfg = parse_config({"perception": {"pipelines": ["stereo-novelty"], "stereo-novelty": {
+        "support_min": 0.3, "pad_left": False, "boot_guard": False, "model_state": "off",
+        "dark_level": 12, "ground_fit": True}}})
+    from appliance.config import pipeline_options
+    o = pipeline_options(cfg, "stereo-novelty")
+    assert (o.support_min, o.pad_left, o.boot_guard, o.model_state, o.ground_fit) == \
+        (0.3, False, False, "off", True)
+    for bad in ({"support_min": 2.0}, {"dark_level": -1}, {"boot_min_points": 0}):
+        with pytest.raises(ConfigError) as e:
+            parse_config({"perception": {"pipelines": ["stereo-novelty"],
+                                         "stereo-novelty": bad}})
+        assert next(iter(bad)) in str(e.value)
