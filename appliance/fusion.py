@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import math
 
-import cv2
 import numpy as np
 
 from appliance.config import GridConfig
@@ -62,15 +61,23 @@ class GridFusion:
         a = np.array([[cos, -sin], [sin, cos]])
         # affine on (i, j): new_ij = A @ ij + b, in units of cells
         b_metric = a @ (np.array([ox + 0.5 * s, oy + 0.5 * s]) - np.array([tx, ty]))
-        # + 1e-3 cell: OpenCV rounds a sample point exactly between two cells to the even one,
-        # so a shift of exactly half a cell (0.5 m/s, 0.1 m cells, 10 Hz) dropped every odd
-        # row of evidence (found by tests/test_properties.py); off the tie, all move alike
-        b = (b_metric - np.array([ox + 0.5 * s, oy + 0.5 * s])) / s + 1e-3
-        # cv2 works on (col=j, row=i): swap axes
-        m = np.array([[a[1, 1], a[1, 0], b[1]], [a[0, 1], a[0, 0], b[0]]], np.float64)
-        self.evidence = cv2.warpAffine(self.evidence, m, (self.ny, self.nx),
-                                       flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
-                                       borderValue=0)
+        b = (b_metric - np.array([ox + 0.5 * s, oy + 0.5 * s])) / s
+        # each cell with evidence goes to the cell its centre moves to (the larger value where
+        # two land together). An inverse nearest-neighbour warp (cv2.warpAffine) samples the
+        # old grid and skips cells: a lone cell vanished in a turn, and on a shift of exactly
+        # half a cell every odd row did (OpenCV rounds ties to even). Found by
+        # tests/test_properties.py
+        ix, iy = np.nonzero(self.evidence)
+        if not len(ix):
+            return
+        vals = self.evidence[ix, iy]
+        nij = a @ np.stack([ix, iy]).astype(np.float64) + b[:, None]
+        ni = np.floor(nij[0] + 0.5)
+        nj = np.floor(nij[1] + 0.5)
+        ok = (ni >= 0) & (ni < self.nx) & (nj >= 0) & (nj < self.ny)
+        out = np.zeros_like(self.evidence)
+        np.maximum.at(out, (ni[ok].astype(np.int64), nj[ok].astype(np.int64)), vals[ok])
+        self.evidence = out
 
     # -- update -----------------------------------------------------------------------------
     def update(self, points_xy: np.ndarray, vehicle: VehicleState | None,

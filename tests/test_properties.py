@@ -324,3 +324,13 @@ def test_loop_never_clear_while_a_source_is_stale_or_a_send_failed(steps):
         else:
             assert out.reason.strip()
         prev_sent = not fail
+
+
+def test_fusion_regression_a_lone_cell_survives_a_turn():
+    """Found by test_fusion_ego_motion...: a single hit 14 m ahead vanished from the grid when
+    the vehicle turned (0.875 m/s, 0.5 rad/s): the nearest-neighbour warp skipped its cell."""
+    g = GridFusion(GridConfig(**{**GRID.__dict__, "decay": 1.0, "occupied_at": 0.5}))
+    g.update(np.array([[14.0, 0.0]]), None, 10 * S)
+    g.update(np.zeros((0, 2)), VehicleState(stamp_ns=0, seq=0, speed_mps=0.875,
+                                            yaw_rate_radps=0.5), 10 * S + S // 10)
+    assert len(g.occupied()) == 1
