@@ -188,6 +188,8 @@ def test_links_and_cli_tests_pass_from_the_installed_wheel(box, tmp_path):
     t = tmp_path / "t"
     shutil.copytree(ROOT / "tests", t / "tests",
                     ignore=shutil.ignore_patterns("__pycache__", "test_install.py"))
+    # the link tests' rig (tools/linkrig.py) is test tooling, not product: copied beside them
+    shutil.copytree(ROOT / "tools", t / "tools", ignore=shutil.ignore_patterns("__pycache__"))
     py = root / "opt/fieldguard/venv/bin/python"
     r = subprocess.run([str(py), "-c", "import appliance, drivers; print(appliance.__file__)"],
                        cwd=t, capture_output=True, text=True, timeout=60)
