@@ -25,6 +25,7 @@ ends with it (so "000010.png" works when only one frame has that name). Pixels a
 from __future__ import annotations
 
 import json
+import tokenize
 import zipfile
 import zlib
 from contextlib import ExitStack
@@ -110,7 +111,8 @@ def load(path: str | Path | None = None) -> RgbdClassModel:
         with np.load(p, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
     except (OSError, ValueError, zipfile.BadZipFile, EOFError, zlib.error,
-            NotImplementedError) as exc:      # zipfile: "zip file version 9.3", compression
+            NotImplementedError,              # zipfile: "zip file version 9.3", compression
+            tokenize.TokenError, SyntaxError) as exc:   # a garbled .npy header (numpy parses it)
         raise RgbdModelError(f"{where}: not a readable model file ({exc})",
                              key="perception.rgbd.model") from None
     if "format" not in data or str(data["format"]) != FORMAT:
