@@ -132,7 +132,9 @@ def netns():
 def canrig(netns):
     peer = Peer([PY, str(ROOT / "tests/peers/j1939_peer.py"), "udp_multicast", GROUP, "0x80",
                  PEER_NAME])
-    vehicle = Peer([PY, str(ROOT / "drivers/emulators/can_vehicle.py"), "udp_multicast", GROUP,
+    # the emulator where the package is (the source tree, or the installed wheel: test_install)
+    import drivers.emulators.can_vehicle as can_vehicle
+    vehicle = Peer([PY, can_vehicle.__file__, "udp_multicast", GROUP,
                     DEFAULT_DBC])
     assert wait_for(lambda: peer.find(ev="ready") and vehicle.find(ev="ready"), 15), \
         peer.proc.stderr and "peers did not start"
