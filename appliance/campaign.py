@@ -442,6 +442,7 @@ class Campaign:
         t0 = time.time()
         w0, load0 = time.perf_counter(), os.getloadavg()
         done = self.finished()
+        n_before = len(done)
         todo = [sp for sp in self.specs if drive_id(sp["kind"], sp["seed"]) not in done]
         use_ray = self.address is not None or self.workers > 1
         engine = "ray" if use_ray else "local"
@@ -466,7 +467,7 @@ class Campaign:
                    if drive_id(sp["kind"], sp["seed"]) in done]
         summary = summarise(
             results, engine=engine, workers=workers, kinds=self.kinds, seeds=self.seeds,
-            timing={"wall_s": round(wall_s, 1), "drives_run": len(todo),
+            timing={"wall_s": round(wall_s, 1), "drives_run": len(done) - n_before,
                     "drives_skipped": len(self.specs) - len(todo),
                     "loadavg_1min_start_end": [round(load0[0], 2),
                                                round(os.getloadavg()[0], 2)],
