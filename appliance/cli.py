@@ -259,6 +259,11 @@ def format_status(doc: dict) -> str:
         lines.append(f"picture {o['occupied_cells']} occupied cells, stop zone {o['stop_zone_m']} m,"
                      f" in stop {o['in_stop_zone']}, in slow {o['in_slow_zone']}, "
                      f"nearest {o['nearest_m']} m")
+    for t in doc.get("tracks", []):
+        lines.append(f"  track {t['id']:<5} {t['distance_m']:5.1f} m  x {t['x_m']:6.2f} y "
+                     f"{t['y_m']:6.2f}  {t['length_m']:.1f}x{t['width_m']:.1f} m  v "
+                     f"{t['vx_mps']:+.1f},{t['vy_mps']:+.1f} m/s  p {t['confidence']:.2f}  "
+                     f"{'+'.join(t['sources'])}{'  (held unseen)' if t.get('coasting') else ''}")
     for n, peers in doc.get("links", {}).items():
         for p in peers:
             lines.append(f"link    {n}: " + ", ".join(f"{k}={v}" for k, v in p.items()))
