@@ -186,9 +186,20 @@ def load_annotations(path: str | Path) -> dict:
                                      f"w and h > 0")
             if "polygon" in r and (not isinstance(r["polygon"], list) or len(r["polygon"]) < 3
                                    or any(not isinstance(q, list) or len(q) != 2
+                                          or not all(_pixel(v) for v in q)
                                           for q in r["polygon"])):
-                raise RgbdModelError(f"{where}: \"polygon\" must be 3 or more [x, y] points")
+                # (a point at 8e72 made cv2.fillPoly take 25 s: tests/fuzz/fuzz_annotations.py)
+                raise RgbdModelError(f"{where}: \"polygon\" must be 3 or more [x, y] points, "
+                                     f"each a number of pixels within +-{MAX_PIXEL}")
     return doc
+
+
+MAX_PIXEL = 100_000
+
+
+def _pixel(v) -> bool:
+    return (isinstance(v, (int, float)) and not isinstance(v, bool)
+            and abs(v) <= MAX_PIXEL)            # (NaN fails the comparison too)
 
 
 def region_mask(shape: tuple[int, int], region: dict) -> np.ndarray:
