@@ -239,6 +239,16 @@ def _needs(pipe) -> tuple[list[tuple[str, ...]], bool]:
     return [tuple(pipe.requires)], False
 
 
+def _sync_model_updates(pipes, timeout_s: float = 600.0) -> None:
+    """Wait for every novelty model's background update to finish (offline evaluation only:
+    the box itself never waits). Without it a run's score depended on thread timing."""
+    for p in pipes:
+        nd = getattr(p, "novelty", None)
+        u = getattr(nd, "updater", None) if nd is not None else None
+        if u is not None and not u.wait_idle(timeout_s):
+            raise RunFormatError(f"the novelty model's update did not finish in {timeout_s:.0f} s")
+
+
 def _check_sensors(pipe, name: str, info: RunInfo) -> set[str]:
     """The run's sensors the pipeline will use; ConfigError when it cannot run on this run."""
     have = set(info.sensors) | {"vehicle"}
@@ -491,6 +501,9 @@ def evaluate_run(path: str | os.PathLike, pipeline: str | None = None, config=No
                 else:
                     detections[label] = pipe.process(inputs)
                 ms = (time.perf_counter_ns() - t0) / 1e6
+                # offline, the novelty model's background update finishes before the next
+                # frame (not timed): the score does not depend on how busy the host was
+                _sync_model_updates(parts if parts is not None else [pipe])
             picture = core.perceive(detections, vehicle, fr.stamp_ns)
             gate_out = core.decide(fr.stamp_ns, faults, picture)
             cells = picture.cells_xy

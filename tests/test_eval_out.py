@@ -192,3 +192,20 @@ def test_the_table_names_false_and_missed_stops(tmp_path):
     p = eval_cli(str(run), "--pipeline", "laser", "--config", str(tmp_path / "box.toml"))
     assert p.returncode == 0, p.stderr
     assert "decision cells: false-stop frames 19  missed-stop frames 5" in p.stdout
+
+
+def test_stereo_novelty_eval_is_reproducible(tmp_path):
+    """The novelty model learns in a background thread; offline, eval waits for each update,
+    so two evaluations of the same run write the same decisions whatever the host's load
+    (before, a re-run could differ by a frame or two: the score depended on thread timing)."""
+    from appliance.evaluation import evaluate_run
+    from drivers.sim.record import write_sim_run
+    run = write_sim_run("stubble-day", 16, tmp_path / "run", seed=3, sensors=("stereo",),
+                        stereo_scale=0.25)
+    outs = []
+    for k in range(2):
+        out = tmp_path / f"decisions-{k}.jsonl"
+        res = evaluate_run(run, "stereo-novelty", out=out)
+        outs.append((out.read_text(), res["false_positive_frames"], res["fp_cells"]))
+    assert outs[0][0].count("\n") == 16
+    assert outs[0] == outs[1]
