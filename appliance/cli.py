@@ -382,9 +382,15 @@ def cmd_config_check(a) -> int:
     from appliance.config import load_config
     from hal.errors import ConfigError
     cfg = load_config(a.file)
+    # the config's own keys first (the most specific message), then what it lacks
+    from appliance.perception.stereo import check_daemon_matchers
+    check_daemon_matchers(cfg)            # a config for the box: never LIBELAS
+    notes = _check_cue_models(cfg)
     if a.sim:
         from appliance.daemon import sim_config
-        cfg = sim_config(cfg)
+        cfg = sim_config(cfg)             # what `run --sim --config FILE` runs: checked too
+        check_daemon_matchers(cfg)
+        notes = _check_cue_models(cfg)
     elif not cfg.devices:
         # what the daemon says too: an empty file is the built-in defaults, which have no
         # devices, so only --sim or --replay can run it
@@ -393,9 +399,6 @@ def cmd_config_check(a) -> int:
                           "is the built-in defaults) runs only with --sim or --replay RUN: check "
                           "it with `fieldguard config check --sim FILE`, or add [devices] tables "
                           "(deploy/fieldguard.toml has one for each kind)", file=a.file)
-    from appliance.perception.stereo import check_daemon_matchers
-    check_daemon_matchers(cfg)            # a config for the box: never LIBELAS
-    notes = _check_cue_models(cfg)
     if not a.sim and all_sensors_simulated(cfg):
         notes.append(f"note: every sensor is simulated: `run --config` runs the simulated field "
                      f"(scene {cfg.sim.scene}) as `run --sim` does")

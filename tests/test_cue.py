@@ -477,10 +477,12 @@ def test_daemon_on_the_lookalike_course_with_the_learned_cue():
 
 
 def test_config_check_loads_the_cue_models(tmp_path, capsys):
+    """A file without [devices] checks as `run --sim --config FILE` would run it (--sim); a
+    broken required model is refused either way, before the missing devices are named."""
     from appliance.cli import main
     f = tmp_path / "c.toml"
     f.write_text('[perception]\npipelines = ["rgbd"]\n[perception.rgbd]\ncue = "required"\n')
-    assert main(["config", "check", str(f)]) == 0
+    assert main(["config", "check", "--sim", str(f)]) == 0
     assert "learned cue (required)" in capsys.readouterr().out
     f.write_text('[perception]\npipelines = ["rgbd"]\n[perception.rgbd]\ncue = "required"\n'
                  f'cue_model = "{tmp_path}/nope.onnx"\n')
@@ -489,5 +491,5 @@ def test_config_check_loads_the_cue_models(tmp_path, capsys):
     assert "nope.onnx" in err and "not found" in err and "hold STOP" in err
     f.write_text('[perception]\npipelines = ["rgbd"]\n[perception.rgbd]\ncue = "optional"\n'
                  f'cue_model = "{tmp_path}/nope.onnx"\n')
-    assert main(["config", "check", str(f)]) == 0
+    assert main(["config", "check", "--sim", str(f)]) == 0
     assert "will run without it" in capsys.readouterr().out
