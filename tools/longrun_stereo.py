@@ -56,6 +56,7 @@ import numpy as np  # noqa: E402
 from appliance.campaign_drive import deep_merge as _deep_merge  # noqa: E402,F401
 from appliance.campaign_drive import drive_config_data, rss_mb, start_sim_daemon  # noqa: E402
 from appliance.campaign_drive import to_toml as _toml  # noqa: E402
+from appliance.campaign_report import nice_ticks as _nice_ticks  # noqa: E402
 
 CSV_FIELDS = ("t_s", "cycles", "distance_m", "lane", "x_m", "y_m", "speed_mps", "state",
               "collisions", "stops_true", "stops_false", "stops_early", "stops_fault",
@@ -474,16 +475,6 @@ def verdicts(rows: list[dict], bound: int | None) -> dict:
 # the plot (cv2 drawing; matplotlib is not a dependency)
 # ---------------------------------------------------------------------------------------------
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
-
-
-def _nice_ticks(lo: float, hi: float, n: int = 5) -> list[float]:
-    if hi <= lo:
-        hi = lo + 1.0
-    raw = (hi - lo) / n
-    mag = 10 ** math.floor(math.log10(raw))
-    step = min((m * mag for m in (1, 2, 5, 10) if m * mag >= raw), default=raw)
-    start = math.ceil(lo / step) * step
-    return [start + i * step for i in range(int((hi - start) / step + 1e-9) + 1)]
 
 
 def _fmt(v: float) -> str:

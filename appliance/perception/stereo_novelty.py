@@ -287,23 +287,8 @@ class StereoNoveltyPipeline(Pipeline):
         ``depth_cue_width_px`` wide): a cell is raised when at least ``depth_cue_min_fraction``
         of its coarse pixels reproject into the height band within ``max_range_m``."""
         o: StereoNoveltyConfig = self.options
-        H, W = fr.left.shape[:2]
-        kc = match_factor(W, o.depth_cue_width_px)
-        calib = scaled_calibration(fr.calib, kc)
-        key = (o.depth_cue, calib.camera.fx, calib.baseline_m)
-        if self._cue_key != key:
-            self._cue_matcher = make_matcher(replace(o, matcher=o.depth_cue,
-                                                     block_size=o.depth_cue_block,
-                                                     speckle_window=o.depth_cue_speckle_px),
-                                             calib.camera.fx, calib.baseline_m)
-            self._cue_key = key
-        left, right = self._pair_for(fr, kc, self._cue_matcher)
-        h, w = left.shape[:2]
-        disp, _ = disparity_regions(self._cue_matcher, left, right, [(0, 0, w, h)],
-                                    pad_left=o.pad_left)
-        drop_dark(disp, left, o.dark_level)
+        disp, kc, calib, pts, px = self._coarse_pass(fr, vehicle, o.depth_cue)
         self._coarse = (disp, kc)
-        pts, px = points_from_disparity(disp, calib, None, 1, vehicle, o.use_attitude)
         h = self._coarse_heights(pts, calib)
         inb = band_mask(pts, h, o.band_min_m, o.band_max_m,
                         min(o.max_range_m, o.depth_cue_max_range_m))
@@ -323,15 +308,16 @@ class StereoNoveltyPipeline(Pipeline):
         h, self._ground = local_heights(pts, o, calib.mount.z_m)
         return h
 
-    def _ground_only(self, fr, vehicle) -> None:
-        """``ground_fit`` without the depth cue: the coarse pass for the ground alone."""
+    def _coarse_pass(self, fr, vehicle, matcher: str):
+        """Full-frame matching at depth_cue_width_px with ``matcher`` (the depth cue's, or BM
+        for the ground alone): (disparity, scale factor, scaled calibration, points, pixels)."""
         o: StereoNoveltyConfig = self.options
         H, W = fr.left.shape[:2]
         kc = match_factor(W, o.depth_cue_width_px)
         calib = scaled_calibration(fr.calib, kc)
-        key = ("bm", calib.camera.fx, calib.baseline_m)
+        key = (matcher, calib.camera.fx, calib.baseline_m)
         if self._cue_key != key:
-            self._cue_matcher = make_matcher(replace(o, matcher="bm",
+            self._cue_matcher = make_matcher(replace(o, matcher=matcher,
                                                      block_size=o.depth_cue_block,
                                                      speckle_window=o.depth_cue_speckle_px),
                                              calib.camera.fx, calib.baseline_m)
@@ -341,7 +327,12 @@ class StereoNoveltyPipeline(Pipeline):
         disp, _ = disparity_regions(self._cue_matcher, left, right, [(0, 0, w, h)],
                                     pad_left=o.pad_left)
         drop_dark(disp, left, o.dark_level)
-        pts, _ = points_from_disparity(disp, calib, None, 1, vehicle, o.use_attitude)
+        pts, px = points_from_disparity(disp, calib, None, 1, vehicle, o.use_attitude)
+        return disp, kc, calib, pts, px
+
+    def _ground_only(self, fr, vehicle) -> None:
+        """``ground_fit`` without the depth cue: the coarse pass for the ground alone."""
+        _, _, calib, pts, _ = self._coarse_pass(fr, vehicle, "bm")
         self._coarse_heights(pts, calib)
 
     def _seen_disparity(self, box, k: int) -> float | None:
