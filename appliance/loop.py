@@ -92,6 +92,10 @@ class ApplianceLoop:
         self.overruns = 0
         self._late_run = 0
         self._send_ok = True
+        # each device's fault count at the last cycle: a fault that came and went between two
+        # cycles (a wire error held 0.3 s while the loop was late, a malformed frame cleared by
+        # the next good one) still stops this cycle
+        self._fault_seen: dict[str, int] = {}
         self._send_error = ""
         self.skipped: dict[str, int] = {}
         self.stage_over: dict[str, int] = {s: 0 for s in STAGES}
@@ -128,8 +132,12 @@ class ApplianceLoop:
         samples = {}
         for name, dev in self.devices.items():
             h = dev.health(now)
+            seen, self._fault_seen[name] = self._fault_seen.get(name), h.faults
             if name in self.required and h.state is not Health.OK:
                 faults.append(f"{name}: {h.reason or h.state.value}")
+            elif name in self.required and seen is not None and h.faults > seen:
+                faults.append(f"{name}: {h.last_fault or 'fault'} (came and went since the "
+                              f"last cycle)")
             samples[name] = dev.latest(now)
         by_kind = {}
         for name, s in samples.items():

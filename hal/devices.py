@@ -44,6 +44,7 @@ class Device(ABC, Generic[T]):
         self._samples = 0
         self._faults = 0
         self._fault_reason: str | None = None
+        self._last_fault = ""
         self._opened = False
         self._closed = False
         self._thread: threading.Thread | None = None
@@ -137,6 +138,7 @@ class Device(ABC, Generic[T]):
             if self._fault_reason != reason:
                 log.warning("%s: %s", self.name, reason)
             self._fault_reason = reason
+            self._last_fault = reason
 
     def clear_fault(self) -> None:
         with self._lock:
@@ -172,7 +174,8 @@ class Device(ABC, Generic[T]):
             s, fault = self._sample, self._fault_reason
             age = None if s is None else (now - self._stamp_of(s)) / 1e9
             common = dict(name=self.name, kind=self.kind, age_s=age, samples=self._samples,
-                          faults=self._faults, counters=dict(self.counters))
+                          faults=self._faults, counters=dict(self.counters),
+                          last_fault=self._last_fault)
         if self._closed:
             return HealthReport(state=Health.CLOSED, reason="closed", **common)
         if fault is not None:

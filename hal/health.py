@@ -25,6 +25,7 @@ class HealthReport:
     samples: int = 0                     # samples published since open
     faults: int = 0                      # faults reported since open
     counters: dict = field(default_factory=dict)   # driver-specific (dropped frames, resends…)
+    last_fault: str = ""                 # the newest fault's reason, kept after it cleared
 
     @property
     def ok(self) -> bool:
@@ -36,4 +37,5 @@ class HealthReport:
             "reason": self.reason,
             "age_s": None if self.age_s is None else round(self.age_s, 4),
             "samples": self.samples, "faults": self.faults, "counters": dict(self.counters),
+            "last_fault": self.last_fault,
         }
