@@ -93,7 +93,14 @@ class Recorder:
 
     def _start_incident(self, res) -> None:
         stamp = time.strftime("%Y%m%d-%H%M%S")
-        name = f"{stamp}-{_slug(res.output.reason)}"
+        name = base = f"{stamp}-{_slug(res.output.reason)}"
+        # never into another incident's folder: two stops for the same reason in one second,
+        # or a wall clock stepped back onto the names of earlier incidents
+        with self._lock:        # (the writer may not have made an earlier one's folder yet)
+            taken = {j.name for j in self._live} | {i["name"] for i in self.incidents}
+        k = 2
+        while name in taken or (self.incident_dir / name).exists():
+            name, k = f"{base}-{k}", k + 1
         job = _Job(self.incident_dir / name, name, incident=True,
                    until_ns=res.stamp_ns + int(1e9))
         for item in list(self.ring)[:-1]:
@@ -133,8 +140,8 @@ class Recorder:
                         self._prune_incidents()
                     continue
                 stamp, inputs, out = item
-                if inputs is None:
-                    continue
+                if inputs is None or job.error is not None:
+                    continue          # a job that failed once says so once, not every frame
                 w = writers.get(id(job))
                 if w is None:
                     w = RunWriter(job.path, job.name, rate_hz=self.rate_hz,
@@ -154,8 +161,15 @@ class Recorder:
                 job.written += 1
             except Exception as exc:
                 job.error = f"{type(exc).__name__}: {exc}"
-                log.error("recording %s: %s", job.path, job.error)
-                writers.pop(id(job), None)
+                log.error("recording %s: %s (%d frame(s) written; the rest of this %s is not "
+                          "recorded)", job.path, job.error, job.written,
+                          "incident" if job.incident else "recording")
+                w = writers.pop(id(job), None)
+                if w is not None:
+                    try:
+                        w.close()
+                    except Exception:          # the disk that failed may fail the close too
+                        pass
                 job.done.set()
 
     def _prune_incidents(self) -> None:

@@ -120,3 +120,96 @@ def test_incident_disk_budget_removes_the_oldest(tmp_path):
         rec.close()
     left = sorted(p.name for p in inc.iterdir())
     assert left == ["20261203-000000-stop", "20261204-000000-stop"]   # 0.8 MB <= 1 MB
+
+
+def _cycles(rec, laser, states, t0_ns=10**9):
+    """Feed the recorder one cycle per state, 0.1 s apart, with a fresh laser scan each."""
+    from types import SimpleNamespace as NS
+    from appliance.perception.base import SensorInputs
+    from hal import GateState
+    t = t0_ns
+    for st in states:
+        laser.service(t)
+        inputs = SensorInputs(stamp_ns=t, laser=laser.latest(t))
+        rec.on_cycle(NS(stamp_ns=t, inputs=inputs,
+                        output=NS(state=GateState[st], reason="laser: bad data on the wire")))
+        t += 100_000_000
+    return t
+
+
+def test_an_incident_that_cannot_be_written_says_so_once(tmp_path, caplog, monkeypatch):
+    """The disk under the recorder fills up (the soak's disk_full): the incident's first frame
+    fails. One error line for the incident, not one per remaining frame (the soak logged 20-30
+    lines an incident), and the box's next incident is tried again."""
+    import errno
+    from appliance.recorder import Recorder
+    from drivers import runfolder
+    from hal import ManualClock
+    from tests.fakes import HandLaser
+    real = runfolder.RunWriter.write_frame
+    full = {"on": True}
+
+    def write_frame(self, *a, **kw):
+        if full["on"]:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(self, *a, **kw)
+    monkeypatch.setattr(runfolder.RunWriter, "write_frame", write_frame)
+    laser = HandLaser("laser", ManualClock(10**9))
+    inc = tmp_path / "incidents"
+    rec = Recorder(10.0, str(inc), incident_seconds=1.0)
+    try:
+        with caplog.at_level("ERROR", logger="fieldguard.recorder"):
+            t = _cycles(rec, laser, ["CLEAR"] * 12 + ["STOP"] * 15)
+            assert rec.incidents and wait_for_jobs(rec)
+            errors = [r for r in caplog.records if "No space left" in r.getMessage()]
+            assert len(errors) == 1, [r.getMessage() for r in caplog.records]
+            assert "the rest of this incident is not recorded" in errors[0].getMessage()
+            full["on"] = False                  # room again: the next incident is written
+            _cycles(rec, laser, ["CLEAR"] * 12 + ["STOP"] * 15, t)
+            assert wait_for_jobs(rec)
+    finally:
+        rec.close()
+    assert len(rec.incidents) == 2
+    written = [p for p in inc.iterdir() if (p / "frames.csv").exists()
+               and len((p / "frames.csv").read_text().splitlines()) > 10]
+    assert len(written) == 1
+
+
+def test_two_incidents_never_share_a_folder(tmp_path, monkeypatch):
+    """Two stops for the same reason within one second of the wall clock (or a wall clock
+    stepped back onto an earlier incident's name): each incident gets its own folder, both
+    complete; nothing is refused or overwritten."""
+    import time as _time
+    from appliance.recorder import Recorder
+    from hal import ManualClock
+    from tests.fakes import HandLaser
+    monkeypatch.setattr(_time, "strftime", lambda fmt, *a: "20261202-120000")
+    laser = HandLaser("laser", ManualClock(10**9))
+    inc = tmp_path / "incidents"
+    rec = Recorder(10.0, str(inc), incident_seconds=0.5)
+    try:
+        t = _cycles(rec, laser, ["CLEAR"] * 6 + ["STOP"] * 12)
+        _cycles(rec, laser, ["CLEAR"] * 6 + ["STOP"] * 12, t)
+        assert wait_for_jobs(rec)
+    finally:
+        rec.close()
+    names = sorted(p.name for p in inc.iterdir())
+    assert len(names) == 2 and names[1] == names[0] + "-2", names
+    assert [i["name"] for i in rec.incidents] == names
+    for n in names:
+        assert (inc / n / "run.toml").exists()
+        assert len((inc / n / "frames.csv").read_text().splitlines()) >= 10
+
+
+def wait_for_jobs(rec, timeout=10.0):
+    """Every incident job the recorder started has finished (written, or failed)."""
+    import time as _time
+    end = _time.monotonic() + timeout
+    while _time.monotonic() < end:
+        with rec._lock:
+            live = list(rec._live)
+        if not live and rec._q.empty():
+            _time.sleep(0.3)                    # the writer's last item
+            return True
+        _time.sleep(0.05)
+    return False
