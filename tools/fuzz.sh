@@ -14,7 +14,7 @@ if [ "${1:-}" = "--summary" ]; then
   # fuzzing time per target so far (tests/fuzz/fuzz-log.tsv): the table in docs/reliability.md
   printf '| target | runs | minutes | inputs | runs stopped by a failing input |\n|---|---|---|---|---|\n'
   for t in cola strobe mavlink j1939 runfolder config annotations cue-model status; do
-    awk -F'\t' -v t="$t" '$2 == t { n++; s += $3; i += $4; if ($5 != "clean") d++ }
+    awk -F'\t' -v t="$t" '$2 == t { n++; s += $3; i += $4; if ($5 ~ /^defect/) d++ }
       END { printf "| `%s` | %d | %.1f | %d | %d |\n", t, n, s / 60, i, d }' tests/fuzz/fuzz-log.tsv
   done
   exit 0

@@ -49,7 +49,8 @@ def one_input(data: bytes) -> None:
         _drain_master()
         os.write(_master, data[i:i + 512])
         for _ in range(64):
-            dev._acquire_once()
+            _drain_master()          # the controller reads what the driver sends (a full pty
+            dev._acquire_once()      # buffer is a write timeout: a reconnect, rightly)
             assert dev._ser is not None, f"the driver dropped the port: {dev.health().reason}"
             if not dev._ser.in_waiting:
                 break
