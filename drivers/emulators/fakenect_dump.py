@@ -63,12 +63,28 @@ class DumpWriter:
         self.fps = float(fps)
         self.t = float(t0_s)
         self.frames = 0
+        self._written: list[tuple[Path, Path]] = []
         self._index = open(self.out / "INDEX.txt", "w")
 
-    def _file(self, kind: str, t: float, ts: int, ext: str, header: bytes, data: bytes) -> None:
+    def _file(self, kind: str, t: float, ts: int, ext: str, header: bytes, data: bytes,
+              link_to: Path | None = None) -> Path:
         name = f"{kind}-{t:f}-{ts}.{ext}"
-        (self.out / name).write_bytes(header + data)
+        if link_to is None:
+            (self.out / name).write_bytes(header + data)
+        else:
+            os.link(link_to, self.out / name)      # the same bytes: a long dump costs nothing
         self._index.write(name + "\n")
+        return self.out / name
+
+    def again(self, k: int) -> None:
+        """Frame ``k`` (0-based, already written) once more at the next recorded time, as hard
+        links to its files: hours of playback in the space of the frames themselves."""
+        r, d = self._written[k]
+        ts = int(self.t * 1e6) & 0xFFFFFFFF
+        self._file("r", self.t, ts, "ppm", b"", b"", link_to=r)
+        self._file("d", self.t + 0.001, (ts + 1000) & 0xFFFFFFFF, "pgm", b"", b"", link_to=d)
+        self.frames += 1
+        self.t += 1.0 / self.fps
 
     def add(self, color_bgr: np.ndarray, depth_mm: np.ndarray, gap_s: float = 0.0) -> None:
         c = np.asarray(color_bgr)
@@ -80,10 +96,12 @@ class DumpWriter:
         self.t += gap_s
         ts = int(self.t * 1e6) & 0xFFFFFFFF             # a rolling device counter
         rgb = np.ascontiguousarray(c[..., ::-1])
-        self._file("r", self.t, ts, "ppm", f"P6 {WIDTH} {HEIGHT} 255\n".encode(), rgb.tobytes())
+        r = self._file("r", self.t, ts, "ppm", f"P6 {WIDTH} {HEIGHT} 255\n".encode(),
+                       rgb.tobytes())
         # depth a millisecond after the colour, as the two streams arrive on a Kinect
-        self._file("d", self.t + 0.001, (ts + 1000) & 0xFFFFFFFF, "pgm",
-                   f"P5 {WIDTH} {HEIGHT} 65535\n".encode(), d.astype(np.uint16).tobytes())
+        dp = self._file("d", self.t + 0.001, (ts + 1000) & 0xFFFFFFFF, "pgm",
+                        f"P5 {WIDTH} {HEIGHT} 65535\n".encode(), d.astype(np.uint16).tobytes())
+        self._written.append((r, dp))
         self.frames += 1
         self.t += 1.0 / self.fps
 
@@ -114,12 +132,13 @@ def read_frame(path: str | Path) -> np.ndarray:
 
 def sim_dump(out: str | Path, scene: str = "greenhouse", frames: int = 20, seed: int = 0,
              fps: float = 15.0, speed_mps: float | None = None, gap_after: int | None = None,
-             gap_s: float = 0.0, repeat: int = 1) -> dict:
+             gap_s: float = 0.0, repeat: int = 1, link: bool = False) -> dict:
     """A dump of ``frames`` consecutive RGB-D frames of the simulated field (the vehicle driving
     on at ``fps``). ``gap_after=N, gap_s=S``: the recorded clock jumps S seconds after frame N
     (the device goes silent that long). ``repeat``: the rendered frames written that many times
-    over (long dumps for benchmarks without rendering more). Returns {"dump", "frames",
-    "calibration"}."""
+    over (long dumps for benchmarks without rendering more); with ``link`` the repeats are hard
+    links to the first pass's files (an hour's dump in the space of ``frames``). Returns
+    {"dump", "frames", "calibration"}."""
     from drivers.sim.field import SimField
     from hal.types import GateState
     f = SimField(scene=scene, seed=seed, sensors=("rgbd",), start_speed_mps=speed_mps)
@@ -134,6 +153,9 @@ def sim_dump(out: str | Path, scene: str = "greenhouse", frames: int = 20, seed:
         rendered.append((fr.color, depth_to_mm(fr.depth_m, cal.depth_unit_m)))
     with DumpWriter(out, fps=fps) as w:
         for k in range(max(1, repeat) * frames):
+            if link and k >= frames and not (gap_after is not None and k == gap_after):
+                w.again(k % frames)
+                continue
             w.add(*rendered[k % frames],
                   gap_s=gap_s if gap_after is not None and k == gap_after else 0.0)
     c = cal.camera
