@@ -202,6 +202,7 @@ class StrobeSerialTrigger(Reconnecting, StrobeTrigger):
         self._next_status = 0.0
         self.pulse_check = PulseCheck()
         self._status_sent: collections.deque = collections.deque()   # STATUS? send times
+        self._judge_after = 0.0           # no pulse-check verdicts before (monotonic s)
         self.last_status: dict | None = None
         self._fault_text: dict[str, str] = {}
 
@@ -271,6 +272,7 @@ class StrobeSerialTrigger(Reconnecting, StrobeTrigger):
         self._ser.reset_input_buffer()
         self._buf = b""
         self._status_sent.clear()
+        self._judge_after = 0.0
         self.pulse_check.reset()
         # (re)configure from scratch: the controller may have been power-cycled
         for c in (f"RATE {self.want_rate_hz:.2f}", "STROBE ON" if self.want_strobe else
@@ -282,10 +284,13 @@ class StrobeSerialTrigger(Reconnecting, StrobeTrigger):
         import serial
         if payload == "STATUS?":
             # before the write: the controller cannot answer earlier (PulseCheck relies on it);
-            # requests unanswered for ack_timeout_s are forgotten (their answers were lost)
+            # a request unanswered for ack_timeout_s is given up (its answer was lost or is late)
             t = time.monotonic()
             while self._status_sent and t - self._status_sent[0] > self.ack_timeout_s:
                 self._status_sent.popleft()
+                # its answer may still come, and would take the next request's place: the
+                # pulse check judges no answer for a while (the staleness check still runs)
+                self._judge_after = t + 2 * self.ack_timeout_s
             self._status_sent.append(t)
         try:
             self._ser.write(frame_line(payload))
@@ -310,7 +315,14 @@ class StrobeSerialTrigger(Reconnecting, StrobeTrigger):
                     break
                 self._send(c)
             now = time.monotonic()
-            if now >= self._next_status:
+            # one STATUS? at a time (stop-and-wait): an answer is then paired with the one
+            # request outstanding, or with none. With several outstanding and the old ones
+            # given up after ack_timeout_s, answers that came later than that were paired with
+            # the requests after theirs, for good: every answer judged against a request sent
+            # after it was composed, and "stopped firing" whenever a pulse fell in between
+            # (the soak with every device attached: a false stall every few seconds)
+            waiting = self._status_sent and now - self._status_sent[-1] <= self.ack_timeout_s
+            if now >= self._next_status and not waiting:
                 self._send("STATUS?")
                 self._next_status = now + self.status_period_s
             data = self._ser.read(max(1, self._ser.in_waiting))
@@ -361,9 +373,13 @@ class StrobeSerialTrigger(Reconnecting, StrobeTrigger):
                 self._count("bad_lines")
                 self._wire_error(str(exc))
                 return
-            # the oldest request still waiting: this answer's or (one was lost) an earlier one,
-            # never a later one, so PulseCheck errs only towards seeing a stall later
+            # the request waiting (at most one, see _acquire_once): this answer's, unless it
+            # is the late answer of a request given up (_send): then it takes the next one's
+            # place and the next answer finds none waiting; neither is judged (_judge_after),
+            # and the pairing is in step again
             sent = self._status_sent.popleft() if self._status_sent else None
+            if time.monotonic() < self._judge_after:
+                sent = None
             self._on_status(st, sent)
         else:
             self._count("other_lines")

@@ -528,3 +528,67 @@ def test_day_night_switch_rules_without_hardware():
     assert ctl.want and sw._probe_since is None and sw.mode == NIGHT
     with pytest.raises(ValueError):
         DayNightSwitch(cam, ctl, night_below=60, day_above=60)
+
+
+def test_answers_later_than_the_ack_timeout_do_not_shift_the_pairing():
+    """A controller (or the host under it) that holds its answers back for 0.7 s, longer than
+    ack_timeout_s (0.5 s), then sends them all and answers at once again, firing at exactly
+    10 Hz throughout. The driver may call the controller stale meanwhile, but it must never
+    claim the trigger stopped firing: before the fix, the requests it gave up on left the late
+    answers paired with later requests for good, and a pulse falling between an answer and the
+    request it was paired with read as a missing pulse (the soak's false stalls)."""
+    import threading
+    import tty
+    from drivers.strobe_serial import frame_line, parse_line
+    master, slave = os.openpty()
+    tty.setraw(master)
+    t0 = time.monotonic() - 0.0123            # the controller's phase: pulse k at t0 + k/10
+    hold = []                                 # [start, end] once the test starts the hold
+    stop = threading.Event()
+
+    def controller():
+        buf, held = b"", []
+        while not stop.is_set():
+            try:
+                buf += os.read(master, 4096)
+            except OSError:
+                return
+            while b"\n" in buf:
+                line, buf = buf.split(b"\n", 1)
+                payload = parse_line(line)
+                now = time.monotonic()
+                if payload == "STATUS?":            # composed when the request arrives
+                    ans = frame_line(f"STATUS rate=10.00 armed=1 strobe=0 "
+                                     f"pulses={math.floor((now - t0) * 10)} fault=0")
+                else:
+                    ans = frame_line(f"OK {payload.split()[0]}")
+                if hold and hold[0] <= now < hold[1]:
+                    held.append(ans)                # held back ...
+                    continue
+                for h in held:                      # ... and sent late, all at once
+                    os.write(master, h)
+                held.clear()
+                os.write(master, ans)
+
+    th = threading.Thread(target=controller, daemon=True)
+    th.start()
+    # (the slave stays open here too: a pty whose slave nobody holds reads EIO on its master)
+    dev = StrobeSerialTrigger("trigger", MonotonicClock(), port=os.ttyname(slave))
+    dev.open()
+    dev.start_acquisition()
+    try:
+        assert wait_for(lambda: dev.health().ok and dev.health().samples >= 10, 20.0), \
+            dev.health()
+        now = time.monotonic()
+        hold.extend([now, now + 0.7])
+        assert wait_for(lambda: time.monotonic() > hold[1] + 1.0, 5.0)
+        samples_after = dev.health().samples
+        # answers again, in step: 1.5 s of them (25 a second)
+        assert wait_for(lambda: dev.health().samples - samples_after > 15, 20.0), dev.health()
+    finally:
+        dev.close()
+        stop.set()
+        os.close(slave)
+        os.close(master)
+        th.join(2)
+    assert dev.counters.get("stalls", 0) == 0, dev.counters
