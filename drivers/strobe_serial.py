@@ -284,9 +284,10 @@ class StrobeSerialTrigger(Reconnecting, StrobeTrigger):
         import serial
         if payload == "STATUS?":
             # before the write: the controller cannot answer earlier (PulseCheck relies on it);
-            # a request unanswered for ack_timeout_s is given up (its answer was lost or is late)
+            # a request unanswered for timeout_s is given up (its answer was lost or is late:
+            # either way the data is stale by then, and a new request is the best next step)
             t = time.monotonic()
-            while self._status_sent and t - self._status_sent[0] > self.ack_timeout_s:
+            while self._status_sent and t - self._status_sent[0] > self.timeout_s:
                 self._status_sent.popleft()
                 # its answer may still come, and would take the next request's place: the
                 # pulse check judges no answer for a while (the staleness check still runs)
@@ -317,11 +318,11 @@ class StrobeSerialTrigger(Reconnecting, StrobeTrigger):
             now = time.monotonic()
             # one STATUS? at a time (stop-and-wait): an answer is then paired with the one
             # request outstanding, or with none. With several outstanding and the old ones
-            # given up after ack_timeout_s, answers that came later than that were paired with
+            # given up after a timeout, answers that came later than that were paired with
             # the requests after theirs, for good: every answer judged against a request sent
             # after it was composed, and "stopped firing" whenever a pulse fell in between
             # (the soak with every device attached: a false stall every few seconds)
-            waiting = self._status_sent and now - self._status_sent[-1] <= self.ack_timeout_s
+            waiting = self._status_sent and now - self._status_sent[-1] <= self.timeout_s
             if now >= self._next_status and not waiting:
                 self._send("STATUS?")
                 self._next_status = now + self.status_period_s
