@@ -533,8 +533,8 @@ def test_day_night_switch_rules_without_hardware():
 def test_answers_later_than_the_timeout_do_not_shift_the_pairing():
     """A controller (or the host under it) that holds its answers back for 0.7 s, longer than
     the driver waits for one (timeout_s, 0.1 s), then sends them all and answers at once again,
-    firing at exactly
-    10 Hz throughout. The driver may call the controller stale meanwhile, but it must never
+    firing at exactly 10 Hz throughout. The driver may call the controller stale meanwhile, but
+    it must never
     claim the trigger stopped firing: before the fix, the requests it gave up on left the late
     answers paired with later requests for good, and a pulse falling between an answer and the
     request it was paired with read as a missing pulse (the soak's false stalls)."""
