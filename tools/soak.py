@@ -1212,6 +1212,9 @@ def analyse_again(a) -> int:
 
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    # SIGTERM (a ^C from a supervisor, `pkill`) ends the soak through its finally blocks: the
+    # daemon, the emulators and the namespace go with it (they used to be left running)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     ap = argparse.ArgumentParser(prog="tools/soak.py", description=__doc__.split("\n\n")[0])
     ap.add_argument("--minutes", type=float, required=True)
     ap.add_argument("--seed", type=int, default=0)
