@@ -201,6 +201,24 @@ class MavlinkVehicleLink(VehicleLink):
     def check_options(cls, options) -> tuple[str, str] | None:
         """(key, message) for an option ``open`` would refuse (config check and run agree),
         else None. A connection is ``PREFIX:HOST:PORT`` or a serial device path."""
+        # the numbers first: they hold for a serial device as for a network one (a serial
+        # path returned before sysid was looked at, and sysid = 0 reached the constructor's
+        # ValueError: found by tests/fuzz/fuzz_config.py, corpus regress-sysid-0-serial-path)
+        sysid = options.get("sysid", 1)
+        if not 1 <= sysid <= 255:
+            return "sysid", f"must be 1..255, got {sysid}"
+        for key in ("target_system", "target_component"):
+            v = options.get(key, 1)
+            if not 0 <= v <= 255:
+                return key, f"must be 0..255 (0: every system/component), got {v}"
+        for key in ("heartbeat_hz", "stream_hz", "ack_timeout_s", "retry_max_s", "baud"):
+            if key in options and not options[key] > 0:
+                return key, f"must be > 0, got {options[key]}"
+        lo, hi = options.get("min_distance_cm", 20), options.get("max_distance_cm", 3000)
+        if not 0 <= lo < hi <= 65535:
+            return "max_distance_cm" if lo >= 0 else "min_distance_cm", (
+                f"needs 0 <= min_distance_cm < max_distance_cm <= 65535 (OBSTACLE_DISTANCE "
+                f"sends uint16 cm), got {lo} and {hi}")
         conn = options.get("connection", "udpout:127.0.0.1:14550")
         want = ("expected udpout:HOST:PORT, udpin:HOST:PORT or tcp:HOST:PORT (also udp:, "
                 "udpbcast:, tcpin:) or a serial device such as /dev/ttyACM0")
@@ -213,9 +231,6 @@ class MavlinkVehicleLink(VehicleLink):
         if not sep2 or not host or not port.isdigit() or not 0 < int(port) < 65536:
             return "connection", (f"{conn!r}: needs HOST:PORT after {prefix}: (a port 1-65535), "
                                   f"e.g. {prefix}:127.0.0.1:14550")
-        sysid = options.get("sysid", 1)
-        if not 1 <= sysid <= 255:
-            return "sysid", f"must be 1..255, got {sysid}"
         return None
 
     # ---- life cycle ---------------------------------------------------------------------------

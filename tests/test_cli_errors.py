@@ -167,6 +167,26 @@ def test_mavlink_connection_syntax(conn, ok):
             parse_config(data, "t.toml")
 
 
+@pytest.mark.parametrize("conn", ["udpout:127.0.0.1:14550", "/dev/ttyACM0"])
+@pytest.mark.parametrize("opts, key", [({"sysid": 0}, "sysid"), ({"sysid": 256}, "sysid"),
+                                       ({"target_system": 300}, "target_system"),
+                                       ({"stream_hz": 0.0}, "stream_hz"),
+                                       ({"heartbeat_hz": -1.0}, "heartbeat_hz"),
+                                       ({"min_distance_cm": 500, "max_distance_cm": 400},
+                                        "max_distance_cm"),
+                                       ({"max_distance_cm": 70000}, "max_distance_cm")])
+def test_mavlink_numbers_are_checked_for_serial_links_too(conn, opts, key):
+    """sysid = 0 with a serial connection passed the config and reached the link's constructor
+    as a ValueError (tests/fuzz/fuzz_config.py; corpus regress-sysid-0-serial-path): every
+    number is now checked whatever the connection, and named."""
+    from appliance.config import parse_config
+    from hal.errors import ConfigError
+    data = {"devices": {"laser": {"type": "sim"},
+                        "link": {"type": "mavlink", "connection": conn, **opts}}}
+    with pytest.raises(ConfigError, match=rf"\[devices\.link\.{key}\]"):
+        parse_config(data, "t.toml")
+
+
 # ---- the guard: an exception nobody meant -------------------------------------------------
 def test_unexpected_exception_is_one_line_and_the_traceback_goes_to_a_log(monkeypatch, capsys,
                                                                          tmp_path):
