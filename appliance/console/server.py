@@ -3,10 +3,10 @@
 The standard library's ThreadingHTTPServer serves it (no framework: a handful of GET routes
 need none, and it adds no dependency to the box). Only GET and HEAD exist; every other method
 is answered 405, so nothing here can change what the box decides. At most ``MAX_CONNECTIONS``
-connections have a thread at once (more are closed at accept), the whole request must arrive
-within ``REQUEST_S``, at most ``MAX_INFLIGHT`` requests are served at once (others get 503),
-each write has a timeout, and every answer
-is built from what the loop already handed over (``FrameTap``) or from the daemon's status
+connections have a thread at once (more get 503 and are closed at accept), the request line
+and headers must arrive within ``REQUEST_S``, at most ``MAX_INFLIGHT`` requests are served at
+once (others get 503), each read or write times out, HTTP/0.9 is refused, and every answer is
+built from what the loop already handed over (``FrameTap``) or from the daemon's status
 provider (the same document as ``fieldguard status --json``).
 """
 from __future__ import annotations
