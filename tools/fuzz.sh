@@ -6,14 +6,14 @@
 # fails. Each run appends one line to tests/fuzz/fuzz-log.tsv (the figures in
 # docs/reliability.md): date, target, seconds, executions, result, commit;
 # `tools/fuzz.sh --summary` adds them up per target.
-#   TARGETS: cola strobe mavlink j1939 runfolder config annotations cue-model status
+#   TARGETS: cola strobe mavlink j1939 runfolder config annotations cue-model status console
 #   env: FUZZ_NICE (15), FUZZ_TIMEOUT_S (20, one input), FUZZ_RSS_MB (2048), PY (.venv/bin/python)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 if [ "${1:-}" = "--summary" ]; then
   # fuzzing time per target so far (tests/fuzz/fuzz-log.tsv): the table in docs/reliability.md
   printf '| target | runs | minutes | inputs | runs stopped by a failing input |\n|---|---|---|---|---|\n'
-  for t in cola strobe mavlink j1939 runfolder config annotations cue-model status; do
+  for t in cola strobe mavlink j1939 runfolder config annotations cue-model status console; do
     awk -F'\t' -v t="$t" '$2 == t { n++; s += $3; i += $4; if ($5 ~ /^defect/) d++ }
       END { printf "| `%s` | %d | %.1f | %d | %d |\n", t, n, s / 60, i, d }' tests/fuzz/fuzz-log.tsv
   done

@@ -2,13 +2,16 @@
 
 The standard library's ThreadingHTTPServer serves it (no framework: a handful of GET routes
 need none, and it adds no dependency to the box). Only GET and HEAD exist; every other method
-is answered 405, so nothing here can change what the box decides. At most ``MAX_INFLIGHT``
-requests are served at once (others get 503), each connection has a timeout, and every answer
-is built from what the loop already handed over (``FrameTap``) or from the daemon's status
+is answered 405, so nothing here can change what the box decides. At most ``MAX_CONNECTIONS``
+connections have a thread at once (more get 503 and are closed at accept), the request line
+and headers must arrive within ``REQUEST_S``, at most ``MAX_INFLIGHT`` requests are served at
+once (others get 503), each read or write times out, HTTP/0.9 is refused, and every answer is
+built from what the loop already handed over (``FrameTap``) or from the daemon's status
 provider (the same document as ``fieldguard status --json``).
 """
 from __future__ import annotations
 
+import io
 import json
 import logging
 import re
@@ -29,12 +32,71 @@ _STATIC_FILES = {"/": ("index.html", "text/html; charset=utf-8"),
                  "/app.js": ("app.js", "text/javascript; charset=utf-8"),
                  "/style.css": ("style.css", "text/css; charset=utf-8")}
 MAX_INFLIGHT = 8
+# A thread per connection, but never more than this many: idle, slow or non-reading clients
+# cannot grow the daemon's threads (a browser opens about 6 connections per host).
+MAX_CONNECTIONS = 16
+# The request line and headers must all arrive within this (a one-byte-a-second client is
+# cut off), whatever the per-read timeout.
+REQUEST_S = 5.0
+_BUSY = (b"HTTP/1.0 503 Service Unavailable\r\nContent-Type: application/json\r\n"
+         b"Connection: close\r\n\r\n{\"error\": \"busy: too many connections\"}\n")
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,200}$")
 
 
 class _Server(ThreadingHTTPServer):
     daemon_threads = True
     allow_reuse_address = True
+
+    def server_activate(self):
+        self._slots = threading.BoundedSemaphore(MAX_CONNECTIONS)
+        self.refused = 0
+        super().server_activate()
+
+    def process_request(self, request, client_address):
+        if not self._slots.acquire(blocking=False):
+            self.refused += 1                 # no thread for it: a short answer and close
+            try:
+                request.send(_BUSY, socket.MSG_DONTWAIT)
+            except OSError:
+                pass
+            self.shutdown_request(request)
+            return
+        try:
+            super().process_request(request, client_address)
+        except BaseException:
+            self._slots.release()
+            raise
+
+    def process_request_thread(self, request, client_address):
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self._slots.release()
+
+    def handle_error(self, request, client_address):
+        # a client that resets or misbehaves: one debug line, not a traceback on stderr
+        log.debug("console: connection from %s ended by an error", client_address[0],
+                  exc_info=True)
+
+
+class _DeadlineReader(io.RawIOBase):
+    """The connection's reads, each bounded by what is left of the request's deadline."""
+
+    def __init__(self, sock: socket.socket, deadline: float, timeout: float):
+        self._sock, self._deadline, self._timeout = sock, deadline, timeout
+
+    def readable(self):
+        return True
+
+    def readinto(self, b):
+        left = self._deadline - time.monotonic()
+        if left <= 0:
+            raise TimeoutError("request not complete in time")
+        self._sock.settimeout(min(left, self._timeout))
+        try:
+            return self._sock.recv_into(b)
+        finally:
+            self._sock.settimeout(self._timeout)
 
 
 class _Server6(_Server):
@@ -160,6 +222,20 @@ class _Handler(BaseHTTPRequestHandler):
     server_version = "fieldguard-console"
     sys_version = ""
     timeout = 10
+
+    def setup(self):
+        super().setup()
+        self.rfile.close()                        # the plain reader: replaced by one with a deadline
+        self.rfile = io.BufferedReader(_DeadlineReader(
+            self.connection, time.monotonic() + REQUEST_S, self.timeout))
+
+    def parse_request(self):
+        if not super().parse_request():
+            return False
+        if self.request_version == "HTTP/0.9":     # no status line to say what a body is
+            self.send_error(HTTPStatus.BAD_REQUEST, "HTTP/0.9 is not served")
+            return False
+        return True
 
     def log_message(self, fmt, *args):          # keep the journal quiet: debug only
         log.debug("console %s: " + fmt, self.address_string(), *args)

@@ -39,6 +39,7 @@ TARGETS = {
     "annotations": "fuzz_annotations",
     "cue-model": "fuzz_cue_model",
     "status": "fuzz_status",
+    "console": "fuzz_console",
 }
 
 

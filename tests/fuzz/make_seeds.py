@@ -116,8 +116,25 @@ def status():
         _write("status", w.split()[0] + str(len(w)), w.encode() + b"\n")
 
 
+def console():
+    reqs = {"page": b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n",
+            "status": b"GET /api/status?x=1 HTTP/1.0\r\n\r\n",
+            "head": b"HEAD /api/snapshot.png HTTP/1.0\r\n\r\n",
+            "grid": b"GET /api/grid.jpg HTTP/1.1\r\nConnection: keep-alive\r\n\r\n",
+            "stops": b"GET /api/stops/0/grid.jpg HTTP/1.0\r\n\r\n",
+            "incidents": b"GET /api/incidents HTTP/1.0\r\n\r\n",
+            "download": b"GET /api/incidents/20261201-120000-obstacle-4-m.tar HTTP/1.0\r\n\r\n",
+            "traversal": b"GET /api/incidents/..%2fsecret.tar HTTP/1.0\r\n\r\n",
+            "post": b"POST /api/status HTTP/1.1\r\nContent-Length: 3\r\n\r\nabc",
+            "http09": b"GET /\r\n\r\n",
+            "http2": b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n"}
+    for name, data in reqs.items():
+        _write("console", name, data)
+
+
 if __name__ == "__main__":
     os.chdir(ROOT)
-    for fn in (cola, strobe, mavlink, j1939, runfolder, config, annotations, cue_model, status):
+    for fn in (cola, strobe, mavlink, j1939, runfolder, config, annotations, cue_model, status,
+               console):
         fn()
     print("seeds written under", CORPUS)
