@@ -87,17 +87,21 @@ def value_noise(tile, x, y, cell):
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FM)
 def texture(flat, sizes, offsets, u_m, v_m, mpt, footprint):
-    """Nearest texel at the mip level of the footprint (world.sample_texture)."""
-    ratio = footprint / mpt
+    """Nearest texel at the mip level of the footprint (world.sample_texture): level
+    floor(log2(footprint / mpt) + 0.5), i.e. the number of thresholds sqrt(2) * 2^k * mpt the
+    footprint exceeds, counted with the texel scale halved on the way (no frexp, no division:
+    ``mpt`` is a literal at every call, so the start values fold to constants)."""
+    nl = sizes.shape[0] - 1
     lev = 0
-    if ratio > 1.4142135:
-        lev = math.frexp(ratio * 1.4142135)[1] - 1        # floor(log2(ratio) + 0.5)
-        if lev > sizes.shape[0] - 1:
-            lev = sizes.shape[0] - 1
+    th = 1.4142135 * mpt
+    sc = 1.0 / mpt
+    while lev < nl and footprint > th:
+        lev += 1
+        th *= 2.0
+        sc *= 0.5
     n = sizes[lev]
-    sc = 1.0 / ((1 << lev) * mpt)
-    iu = math.floor(u_m * sc) & (n - 1)
-    iv = math.floor(v_m * sc) & (n - 1)
+    iu = int(math.floor(u_m * sc)) & (n - 1)
+    iv = int(math.floor(v_m * sc)) & (n - 1)
     return flat[offsets[lev] + iv * n + iu]
 
 
@@ -359,16 +363,100 @@ def shade(kind, G, gp, tp, bp, tile77, obs, salt, C, f2x, f2y, r2x, r2y, fx, fy,
         w = min(el / 0.35, 1.0)
         for q in range(3):
             sky[r, q] = 0.0 if mode == 1 else hor_bgr[q] * (1 - w) + sky_bgr[q] * w
+    # the sun's direction in the ground plane (obstacle shadows)
+    nsh = sh_obs.shape[0]
+    s_ux, s_uy, s_tan = 0.0, 0.0, 0.0
+    s_horiz = math.sqrt(sun[0] * sun[0] + sun[1] * sun[1])
+    if s_horiz < 1e-6:
+        nsh = 0                                    # sun overhead: render._shadows lights all
+    else:
+        s_ux, s_uy, s_tan = sun[0] / s_horiz, sun[1] / s_horiz, sun[2] / s_horiz
+    cks = np.empty(max(nsh, 1), np.int64)          # this column's shadow casters
+    ctlo = np.empty(max(nsh, 1))
+    cthi = np.empty(max(nsh, 1))
     # column-major (virtual column c outer): the march's arrays are read along a column and the
     # outputs are stored transposed, [c, r] (the warp swaps the axes back)
     for c in range(Wv):
+        # rows of this column the real camera samples: the pixel's real image point
+        # (uq, vq) = (A + B r, D + E r) / (F + G r) inside [-2.5, W + 1.5] x [-2.5, H + 1.5]; a
+        # line through a convex box, so an interval of rows, solved here once per column
+        # (with w > 0 along the column; otherwise the test per pixel as before)
+        A_ = Hr[0, 0] * c + Hr[0, 2]
+        B_ = Hr[0, 1]
+        D_ = Hr[1, 0] * c + Hr[1, 2]
+        E_ = Hr[1, 1]
+        F_ = Hr[2, 0] * c + Hr[2, 2]
+        G_ = Hr[2, 1]
+        per_pixel = not (F_ > 0.0 and F_ + G_ * (Hv - 1) > 0.0)
+        rlo, rhi = 0.0, Hv - 1.0
+        if not per_pixel:
+            # lo * w <= num <= hi * w for (num, lo, hi) = (u, -2.5, W+1.5), (v, -2.5, H+1.5)
+            for q in range(4):
+                if q == 0:
+                    k0, k1 = A_ + 2.5 * F_, B_ + 2.5 * G_          # u + 2.5 w >= 0
+                elif q == 1:
+                    k0, k1 = (Wr + 1.5) * F_ - A_, (Wr + 1.5) * G_ - B_
+                elif q == 2:
+                    k0, k1 = D_ + 2.5 * F_, E_ + 2.5 * G_
+                else:
+                    k0, k1 = (Hr_ + 1.5) * F_ - D_, (Hr_ + 1.5) * G_ - E_
+                # k0 + k1 r >= 0
+                if k1 > 0.0:
+                    rlo = max(rlo, -k0 / k1)
+                elif k1 < 0.0:
+                    rhi = min(rhi, -k0 / k1)
+                elif k0 < 0.0:
+                    rlo, rhi = 1.0, 0.0
+        r_first = int(math.ceil(rlo)) if rlo <= rhi else Hv
+        r_last = int(math.floor(rhi)) if rlo <= rhi else -1
+        a = (c - cxv) / fx
+        dxc = f2x + a * r2x
+        dyc = f2y + a * r2y
+        # obstacle shadows that can fall on this column: the forward depths t over which the
+        # column's ground line crosses each caster's shadow rectangle (s in (-r, reach) along
+        # the sun, |perp| < r); the exact test (shadow()) runs only on those, per pixel
+        nck = 0
+        if mode == 0:
+            b_s = dxc * s_ux + dyc * s_uy
+            b_p = dxc * s_uy - dyc * s_ux
+            for k in range(nsh):
+                ddx0 = sh_obs[k, 0] - C[0]
+                ddy0 = sh_obs[k, 1] - C[1]
+                s0 = ddx0 * s_ux + ddy0 * s_uy
+                p0 = ddx0 * s_uy - ddy0 * s_ux
+                rk = sh_obs[k, 2]
+                tl, th_ = -1e30, 1e30
+                # s0 - t bs in (-r, reach)
+                if abs(b_s) > 1e-12:
+                    ta = (s0 + rk) / b_s
+                    tb = (s0 - sh_obs[k, 4]) / b_s
+                    tl, th_ = max(tl, min(ta, tb)), min(th_, max(ta, tb))
+                elif not (-rk < s0 < sh_obs[k, 4]):
+                    continue
+                # p0 - t bp in (-r, r)
+                if abs(b_p) > 1e-12:
+                    ta = (p0 + rk) / b_p
+                    tb = (p0 - rk) / b_p
+                    tl, th_ = max(tl, min(ta, tb)), min(th_, max(ta, tb))
+                elif not (abs(p0) < rk):
+                    continue
+                eps = 1e-6 * (1.0 + abs(tl) + abs(th_))
+                if th_ + eps < tl - eps or th_ + eps < 0.0:
+                    continue
+                cks[nck] = k
+                ctlo[nck] = tl - eps
+                cthi[nck] = th_ + eps
+                nck += 1
         for r in range(Hv):
-            wq = Hr[2, 0] * c + Hr[2, 1] * r + Hr[2, 2]
-            uq = (Hr[0, 0] * c + Hr[0, 1] * r + Hr[0, 2]) / wq
-            vq = (Hr[1, 0] * c + Hr[1, 1] * r + Hr[1, 2]) / wq
             j = jhit[c, r]
-            if uq < -2.5 or vq < -2.5 or uq > Wr + 1.5 or vq > Hr_ + 1.5:
-                j = S                              # the real camera never samples it
+            if per_pixel:
+                wq = F_ + G_ * r
+                uq = (A_ + B_ * r) / wq
+                vq = (D_ + E_ * r) / wq
+                if uq < -2.5 or vq < -2.5 or uq > Wr + 1.5 or vq > Hr_ + 1.5:
+                    j = S                          # the real camera never samples it
+            elif r < r_first or r > r_last:
+                j = S
             if j >= S:
                 img[c, r, 0] = sky[r, 0]
                 img[c, r, 1] = sky[r, 1]
@@ -378,9 +466,6 @@ def shade(kind, G, gp, tp, bp, tile77, obs, salt, C, f2x, f2y, r2x, r2y, fx, fy,
                     mv[c, r] = -1.0
                     lum[c, r] = 0.0
                 continue
-            a = (c - cxv) / fx
-            dxc = f2x + a * r2x
-            dyc = f2y + a * r2y
             jp = j - 1 if j > 0 else 0
             tj = t[j]
             tp_ = t[jp]
@@ -461,7 +546,11 @@ def shade(kind, G, gp, tp, bp, tile77, obs, salt, C, f2x, f2y, r2x, r2y, fx, fy,
                 lam = max(nx * sun[0] + ny * sun[1] + nz * sun[2], 0.0)
                 lit = 1.0
                 if pm < 16:
-                    lit = shadow(sh_obs, sun, px, py, pz)
+                    for i in range(nck):
+                        if ctlo[i] <= th <= cthi[i]:
+                            if not shadow_one(sh_obs, cks[i], s_ux, s_uy, s_tan, px, py, pz):
+                                lit = 0.0
+                                break
                 if cloud > 0.0:
                     n_ = value_noise(tiles[4], px - light_p[3] * light_p[5],
                                      py - light_p[4] * light_p[5], light_p[6])
@@ -546,6 +635,22 @@ def shadow(sh, sun, px, py, pz):
         if pz + s_in * tan_e < sh[k, 3]:
             return 0.0
     return 1.0
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FM)
+def shadow_one(sh, k, ux, uy, tan_e, px, py, pz):
+    """shadow()'s test for one caster k: False where its shadow falls on the point."""
+    ddx = sh[k, 0] - px
+    ddy = sh[k, 1] - py
+    s = ddx * ux + ddy * uy
+    r = sh[k, 2]
+    if s <= -r or s >= sh[k, 4]:
+        return True
+    perp = abs(ddx * uy - ddy * ux)
+    if perp >= r:
+        return True
+    s_in = max(s - math.sqrt(max(r * r - perp * perp, 0.0)), 0.0)
+    return not (pz + s_in * tan_e < sh[k, 3])
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FM)
@@ -659,8 +764,33 @@ def expose(rad, pool, dy, dx, flip, night, out):
                 out[r, c, q] = np.uint8(v)
 
 
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FM)
+def coarse_max(Gc, gp, x, y):
+    """The highest ground node around (x, y) on the coarse grid of COARSE x COARSE ground cells
+    (world.ground_coarse_max): ground(x, y) <= this everywhere in that coarse cell."""
+    fx = (x - gp[0]) * gp[2]
+    fy = (y - gp[1]) * gp[2]
+    nx = int(gp[3])
+    ny = int(gp[4])
+    if fx < 0.0:
+        fx = 0.0
+    elif fx > nx - 1.000001:
+        fx = nx - 1.000001
+    if fy < 0.0:
+        fy = 0.0
+    elif fy > ny - 1.000001:
+        fy = ny - 1.000001
+    return Gc[int(fy) // COARSE, int(fx) // COARSE]
+
+
+COARSE = 5
+
+
 @njit(cache=True, error_model="numpy", fastmath=FM)
-def laser(kind, G, gp, tp, bp, tile77, max_terrain, obs, O, dirs, t, range_max, out):
+def laser(kind, G, gp, tp, bp, tile77, max_terrain, obs, O, dirs, t, range_max, Gc, top_m, out):
+    """Per beam: the first sample at or under the terrain (a sample higher than the coarse
+    grid's highest ground node + the tallest tuft/bush cannot touch it and is not evaluated),
+    then the obstacles near the beam."""
     N = dirs.shape[0]
     S = t.shape[0]
     no = obs.shape[0]
@@ -674,7 +804,11 @@ def laser(kind, G, gp, tp, bp, tile77, max_terrain, obs, O, dirs, t, range_max, 
                 if dzb >= 0:
                     break
                 continue
-            hh, _ = terrain(kind, G, gp, tp, bp, tile77, O[0] + dxb * tj, O[1] + dyb * tj)
+            xb = O[0] + dxb * tj
+            yb = O[1] + dyb * tj
+            if z > coarse_max(Gc, gp, xb, yb) + top_m:
+                continue
+            hh, _ = terrain(kind, G, gp, tp, bp, tile77, xb, yb)
             if hh >= z:
                 best = tj
                 break

@@ -633,7 +633,7 @@ def cast_laser(world: World, origin: np.ndarray, dirs: np.ndarray, range_max: fl
         fr.laser(kp["kind"], kp["G"], kp["gp"], kp["tp"], kp["bp"], kp["tile77"],
                  float(world.max_terrain_m), world.obstacle_rows(), O,
                  np.ascontiguousarray(dirs, np.float64), t.astype(np.float64), float(range_max),
-                 out)
+                 kp["Gc"], float(kp["top_m"]), out)
         return out
     zr = (f32(O[2]) + dirs[:, 2:3].astype(f32) * t[None, :])
     # terrain can only be touched where the beam is below the highest terrain

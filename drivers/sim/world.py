@@ -406,6 +406,22 @@ class World:
             self._ground_grid = g
         return g
 
+    def ground_coarse_max(self, k: int = 5) -> np.ndarray:
+        """(ceil(ny / k), ceil(nx / k)) float64: the highest ground-grid node of each k x k block
+        of grid cells, its far edge included, so the bilinear ground anywhere in the block is
+        at most this (the laser's kernel skips beam samples above it + the tallest tuft)."""
+        G, gp = self.ground_grid()
+        nx, ny = int(gp[3]), int(gp[4])
+        g = G.reshape(ny, nx)
+        cy, cx = -(-ny // k), -(-nx // k)
+        pad = np.full((cy * k + 1, cx * k + 1), -np.inf)
+        pad[:ny, :nx] = g
+        out = np.full((cy, cx), -np.inf)
+        for dy in range(k + 1):
+            for dx in range(k + 1):
+                out = np.maximum(out, pad[dy:dy + cy * k:k, dx:dx + cx * k:k])
+        return out
+
     def ground_analytic(self, x, y):
         x = np.asarray(x, np.float32)
         y = np.asarray(y, np.float32)
@@ -598,7 +614,7 @@ class World:
                   "bp": bp, "tile77": _noise_tile(s ^ 0x77), "tiles": tiles,
                   "grass": grass, "gravel": gravel, "sizes": sizes, "offsets": offsets,
                   "top_m": 0.53 * self.stubble_height if self.kind == "stubble" else 1.27,
-                  "salt": s}
+                  "salt": s, "Gc": self.ground_coarse_max()}
             self._kp = kp
         return kp
 
