@@ -198,6 +198,7 @@ class StrobeSerialTrigger(Reconnecting, StrobeTrigger):
         self._ser = None
         self._buf = b""
         self._cmds: queue.Queue[str] = queue.Queue()
+        self._queued: set[str] = set()       # command words in _cmds (see _correct)
         self._pending: dict[str, float] = {}      # command word -> deadline (monotonic)
         self._next_status = 0.0
         self.pulse_check = PulseCheck()
@@ -312,6 +313,7 @@ class StrobeSerialTrigger(Reconnecting, StrobeTrigger):
             while True:
                 try:
                     c = self._cmds.get_nowait()
+                    self._queued.discard(c.split()[0])
                 except queue.Empty:
                     break
                 self._send(c)
@@ -385,6 +387,18 @@ class StrobeSerialTrigger(Reconnecting, StrobeTrigger):
         else:
             self._count("other_lines")
 
+    def _correct(self, command: str) -> None:
+        """Queue a command that puts the controller right, unless the same command word is
+        queued or waiting for its OK already: a controller that says "not armed" in every
+        STATUS gets one ARM at a time, not 25 a second piling up and then written in one burst
+        (found by tests/fuzz/fuzz_strobe.py: a queue of hundreds filled the serial line's
+        buffer, a write timeout, a reconnect; corpus regress-command-flood)."""
+        word = command.split()[0]
+        if word in self._pending or word in self._queued:
+            return
+        self._queued.add(word)
+        self._cmds.put(command)
+
     def _on_status(self, st: dict, sent_s: float | None = None) -> None:
         now = time.monotonic()
         self.last_status = st
@@ -396,15 +410,15 @@ class StrobeSerialTrigger(Reconnecting, StrobeTrigger):
             return
         if not st["armed"]:
             self._fault("controller is not armed (cameras are not being triggered)")
-            self._cmds.put("ARM")
+            self._correct("ARM")
             return
         if abs(st["rate_hz"] - self.want_rate_hz) > 0.01:
             self._fault(f"controller runs at {st['rate_hz']:g} Hz, wanted "
                         f"{self.want_rate_hz:g} Hz")
-            self._cmds.put(f"RATE {self.want_rate_hz:.2f}")
+            self._correct(f"RATE {self.want_rate_hz:.2f}")
             return
         if st["strobe"] != self.want_strobe:
-            self._cmds.put("STROBE ON" if self.want_strobe else "STROBE OFF")
+            self._correct("STROBE ON" if self.want_strobe else "STROBE OFF")
         # is it firing? every pulse that was due must be in the counter
         was_missing = self.pulse_check.missing_since is not None
         if self.pulse_check.update(st["rate_hz"], st["pulses"], sent_s, now):

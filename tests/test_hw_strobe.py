@@ -593,3 +593,49 @@ def test_answers_later_than_the_timeout_do_not_shift_the_pairing():
         os.close(master)
         th.join(2)
     assert dev.counters.get("stalls", 0) == 0, dev.counters
+
+
+def test_a_controller_saying_not_armed_in_every_line_gets_one_arm_at_a_time():
+    """300 STATUS lines saying "not armed" arrive at once (a confused controller, or the
+    fuzzer's input): the driver asks ARM once and waits for its OK (ack_timeout_s), instead of
+    queueing one ARM per line and writing them all in one burst (which filled the serial line's buffer: a write
+    timeout and a reconnect, tests/fuzz/fuzz_strobe.py)."""
+    import tty
+    from drivers.strobe_serial import frame_line
+    master, slave = os.openpty()
+    tty.setraw(master)
+    os.set_blocking(master, False)
+    dev = StrobeSerialTrigger("trigger", MonotonicClock(), port=os.ttyname(slave))
+    dev._connect()
+    try:
+        def drain():
+            out = b""
+            try:
+                while True:
+                    out += os.read(master, 65536)
+            except BlockingIOError:
+                return out
+        drain()                                          # RATE, STROBE OFF, ARM of the connect
+        for line in (b"OK RATE", b"OK STROBE", b"OK ARM"):
+            os.write(master, frame_line(line.decode()))
+        for _ in range(20):
+            dev._acquire_once()
+        drain()
+        dev._next_status = float("inf")                  # the lines below are the traffic
+        lines = b"".join(frame_line("STATUS rate=10.00 armed=0 strobe=0 pulses=5 fault=0")
+                         for _ in range(300))
+        sent, t_start = b"", time.monotonic()
+        for i in range(0, len(lines), 1024):
+            os.write(master, lines[i:i + 1024])
+            for _ in range(20):
+                dev._acquire_once()
+                sent += drain()
+        took = time.monotonic() - t_start
+        assert dev._ser is not None, dev.health()
+        # one ARM, and again only when its OK has not come within ack_timeout_s (0.5 s)
+        assert 1 <= sent.count(b"ARM") <= 1 + took / dev.ack_timeout_s, (took, sent[:300])
+        assert "not armed" in dev.health().reason
+    finally:
+        dev._disconnect()
+        os.close(slave)
+        os.close(master)
