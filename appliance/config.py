@@ -71,6 +71,10 @@ class GridConfig:
     decay: float = _f(0.5, lo=0.0, hi=0.99, doc="evidence kept from one cycle to the next")
     occupied_at: float = _f(1.4, lo=0.1, hi=100.0,
                             doc="evidence to call a cell occupied (1.0 = one frame is enough)")
+    stop_at: float = _f(0.0, lo=0.0, hi=100.0,
+                        doc="cell decision: evidence an occupied cell in the stop zone needs to "
+                            "make a STOP (0 = occupied_at, the papers' rule); an occupied cell "
+                            "there with less is a SLOW (docs/tracking.md, 'False stops')")
 
 
 @dataclass(frozen=True)

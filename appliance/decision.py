@@ -149,7 +149,11 @@ class DecisionCore:
         grid_cells = self.grid.update(pts_xy, vehicle, now_ns)
         speed = vehicle.speed_mps if vehicle is not None else 0.0
         if self.tracker is None:
-            pic = Picture(grid_cells, assess(grid_cells, speed, self.cfg.zones), speed,
+            g = self.cfg.grid
+            conf = None
+            if g.stop_at > g.occupied_at:    # a STOP needs a cell seen in more cycles running
+                conf = self.grid.evidence_at(grid_cells) >= g.stop_at - 1e-6
+            pic = Picture(grid_cells, assess(grid_cells, speed, self.cfg.zones, conf), speed,
                           grid_cells)
         else:
             occ = self.grid.occupied_mask() if self.cfg.tracking.input == "occupied" else None

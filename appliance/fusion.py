@@ -106,3 +106,11 @@ class GridFusion:
 
     def occupied_mask(self) -> np.ndarray:
         return self.evidence >= self.cfg.occupied_at - 1e-6
+
+    def evidence_at(self, cells_xy: np.ndarray) -> np.ndarray:
+        """The evidence of the cells whose centres are ``cells_xy`` (0 off the grid)."""
+        pts = np.asarray(cells_xy, dtype=np.float64).reshape(-1, 2)
+        ix, iy, ok = self.cell_index(pts)
+        out = np.zeros(len(pts), np.float32)
+        out[ok] = self.evidence[ix[ok], iy[ok]]
+        return out

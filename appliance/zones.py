@@ -45,15 +45,20 @@ def stop_length(speed_mps: float, z: ZonesConfig) -> float:
     return max(z.min_stop_m, v * z.reaction_time_s + v * v / (2 * z.decel_mps2) + z.margin_m)
 
 
-def drop_excluded(cells_xy: np.ndarray, z: ZonesConfig) -> np.ndarray:
-    if not len(z.exclusion) or not len(cells_xy):
-        return cells_xy
+def kept_mask(cells_xy: np.ndarray, z: ZonesConfig) -> np.ndarray:
+    """Per cell: outside every exclusion box."""
     keep = np.ones(len(cells_xy), bool)
     for e in z.exclusion:
         inside = ((cells_xy[:, 0] >= e.x_min_m) & (cells_xy[:, 0] <= e.x_max_m)
                   & (cells_xy[:, 1] >= e.y_min_m) & (cells_xy[:, 1] <= e.y_max_m))
         keep &= ~inside
-    return cells_xy[keep]
+    return keep
+
+
+def drop_excluded(cells_xy: np.ndarray, z: ZonesConfig) -> np.ndarray:
+    if not len(z.exclusion) or not len(cells_xy):
+        return cells_xy
+    return cells_xy[kept_mask(cells_xy, z)]
 
 
 def sectors(cells_xy: np.ndarray, n: int = 72, fov_deg: float = 180.0,
@@ -73,14 +78,32 @@ def sectors(cells_xy: np.ndarray, n: int = 72, fov_deg: float = 180.0,
                  for i in range(n))
 
 
-def assess(cells_xy: np.ndarray, speed_mps: float, z: ZonesConfig) -> ZoneVerdict:
-    cells = drop_excluded(np.asarray(cells_xy, dtype=np.float64).reshape(-1, 2), z)
+def assess(cells_xy: np.ndarray, speed_mps: float, z: ZonesConfig,
+           confirmed: np.ndarray | None = None) -> ZoneVerdict:
+    """The zone verdict on occupied cells. ``confirmed`` (one flag per cell, or None: all):
+    only a confirmed cell in the stop zone makes a STOP; an unconfirmed one there is a SLOW
+    (``[grid] stop_at``: a cell seen in too few cycles running to stop for)."""
+    cells = np.asarray(cells_xy, dtype=np.float64).reshape(-1, 2)
+    if confirmed is not None:
+        keep = kept_mask(cells, z)
+        cells, conf = cells[keep], np.asarray(confirmed, bool).reshape(-1)[keep]
+    else:
+        cells = drop_excluded(cells, z)
+        conf = np.ones(len(cells), bool)
     stop_len = stop_length(speed_mps, z)
     slow_len = stop_len + z.slow_extra_m
     ahead = cells[:, 0] - z.front_x_m if len(cells) else np.zeros(0)
     in_path = np.abs(cells[:, 1]) <= z.half_width_m if len(cells) else np.zeros(0, bool)
     fwd = in_path & (ahead >= 0)
-    in_stop = int(np.count_nonzero(fwd & (ahead <= stop_len)))
-    in_slow = int(np.count_nonzero(fwd & (ahead > stop_len) & (ahead <= slow_len)))
+    stop_cells = fwd & (ahead <= stop_len)
+    in_stop = int(np.count_nonzero(stop_cells & conf))
+    waiting = int(np.count_nonzero(stop_cells & ~conf))
+    in_slow = int(np.count_nonzero(fwd & (ahead > stop_len) & (ahead <= slow_len))) + waiting
     nearest = float(ahead[fwd].min()) if np.any(fwd) else None
-    return ZoneVerdict(stop_len, slow_len, in_stop, in_slow, nearest, sectors(cells))
+    slow_reason = None
+    if waiting and not in_stop:
+        near = float(ahead[stop_cells & ~conf].min())
+        slow_reason = (f"unconfirmed obstacle {near:.1f} m ahead in the stop zone "
+                       f"({stop_len:.1f} m): slow until it is seen again")
+    return ZoneVerdict(stop_len, slow_len, in_stop, in_slow, nearest, sectors(cells),
+                       slow_reason=slow_reason)

@@ -108,6 +108,8 @@ def main(argv=None) -> int:
     ap.add_argument("pipelines")
     ap.add_argument("grid", help='JSON {"tracking key": [values]}')
     ap.add_argument("--base", default="{}", help="JSON [tracking] keys for every row")
+    ap.add_argument("--grid-keys", default="{}",
+                    help='JSON [grid] keys for every row, e.g. {"stop_at": 1.7}')
     ap.add_argument("--cells", action="store_true", help="add the cell decision first")
     ap.add_argument("--cache", default="/tmp/fieldguard-decision-cache")
     a = ap.parse_args(argv)
@@ -121,7 +123,8 @@ def main(argv=None) -> int:
         tr["enabled"] = combo is not None
         for k, v in zip(keys, combo or ()):
             _set(tr, k, v)
-        cfg = parse_config({"tracking": tr}, "<decision_stages>")
+        cfg = parse_config({"tracking": tr, "grid": json.loads(a.grid_keys)},
+                           "<decision_stages>")
         t0 = time.process_time()
         row = []
         for run in runs:

@@ -1,0 +1,140 @@
+"""Why does the box stop for nothing? One closed-loop campaign drive, with a picture and the
+figures of every false stop.
+
+    python tools/why_false_stops.py KIND SEED --minutes 0.5 --stereo-scale 0.5 --out DIR \
+        [--config extra.toml]
+
+Runs the drive exactly as ``fieldguard campaign`` does (appliance/campaign_drive.Drive, the
+same config), and at the first cycle of each false STOP episode writes
+``DIR/KIND-SEED-tNN.N.png``: the left image with this frame's obstacle pixels (yellow), those
+whose points lie in the stop zone (red), the novelty mask's cells (blue tint) and the horizon
+row (the level ground's, cyan); beside it a top view of the grid's occupied cells and the zones.
+``DIR/KIND-SEED.jsonl``: per false stop the points in the stop zone (range, height, image row
+below the horizon), the novelty model's updates so far, and for the 5 cycles before it how many
+stop-zone points each cycle had (does one blip pass the two-hit rule, or does it persist?).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections import deque
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("kind")
+    ap.add_argument("seed", type=int)
+    ap.add_argument("--minutes", type=float, default=0.5)
+    ap.add_argument("--stereo-scale", type=float, default=0.5)
+    ap.add_argument("--config", default=None)
+    ap.add_argument("--out", required=True)
+    a = ap.parse_args(argv)
+    from appliance.campaign import load_extra_config, make_spec
+    from appliance.campaign_drive import Drive
+    extra = load_extra_config(a.config) if a.config else None
+    spec = make_spec(a.kind, a.seed, a.minutes, a.stereo_scale, extra)
+    d = Drive(a.kind, a.seed, a.minutes, config_data=spec["config"],
+              stereo_scale=a.stereo_scale)
+    d.build()
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    log = open(out / f"{a.kind}-{a.seed}.jsonl", "w")
+    pipe = next(p for p in d.daemon.pipelines if hasattr(p, "novelty"))
+    z = d.zones
+    hist: deque = deque(maxlen=6)
+    n_events = [0]
+
+    def in_zone(xy, stop_len):
+        a_ = xy[:, 0] - z.front_x_m
+        return (a_ >= 0) & (a_ <= stop_len) & (np.abs(xy[:, 1]) <= z.half_width_m)
+
+    def after(res):
+        stop_len = res.verdict.stop_len_m if res.verdict is not None else z.min_stop_m
+        pts, px, h, keep, k = pipe.last_points
+        kp, kpx, kh = pts[keep], px[keep], h[keep]
+        zmask = in_zone(kp[:, :2], stop_len) if len(kp) else np.zeros(0, bool)
+        cells = np.asarray(res.cells_xy, float).reshape(-1, 2)
+        hist.append({"t_s": round(res.index / d.rate, 1), "zone_points": int(zmask.sum()),
+                     "zone_cells": int(in_zone(cells, stop_len).sum()) if len(cells) else 0,
+                     "state": res.output.state.value})
+        fresh = [e for e in d.events[n_events[0]:] if e.get("event") == "stop"]
+        n_events[0] = len(d.events)
+        for ev in fresh:
+            if ev["kind"] != "false":
+                continue
+            fr = res.inputs.stereo
+            img = cv2.cvtColor(fr.left, cv2.COLOR_GRAY2BGR) if fr.left.ndim == 2 else \
+                fr.left.copy()
+            H, W = img.shape[:2]
+            nres = pipe.last[0]
+            m = nres.mask.astype(np.uint8)
+            mm = cv2.resize(m, (W, H), interpolation=cv2.INTER_NEAREST).astype(bool)
+            img[mm] = (0.6 * img[mm] + 0.4 * np.array([255, 80, 0])).astype(np.uint8)
+            for (u, v), inz in zip(np.asarray(kpx, float) * k, zmask):
+                cv2.circle(img, (int(u), int(v)), 1, (0, 0, 255) if inz else (0, 255, 255), -1)
+            cam = fr.calib.camera
+            mount = fr.calib.mount
+            # the level ground's horizon row: a level point 1 km ahead, projected
+            R = mount.camera_to_vehicle()
+            oc = R.T @ np.array([1000.0, 0.0, mount.z_m * 0.0])
+            vh = cam.cy + cam.fy * oc[1] / oc[2] if oc[2] > 0 else None
+            if vh is not None and 0 <= vh < H:
+                cv2.line(img, (0, int(vh)), (W - 1, int(vh)), (255, 255, 0), 1)
+            # top view: 0..20 m ahead, +-6 m, 20 px/m
+            s = 20
+            top = np.zeros((20 * s, 12 * s, 3), np.uint8)
+
+            def tp(x, y):
+                return int(6 * s - y * s), int(20 * s - (x - z.front_x_m + 1) * s)
+            cv2.rectangle(top, tp(z.front_x_m + stop_len, z.half_width_m),
+                          tp(z.front_x_m, -z.half_width_m), (0, 0, 160), 1)
+            for (x, y) in kp[:, :2]:
+                cv2.circle(top, tp(x, y), 1, (0, 200, 200), -1)
+            for (x, y) in cells:
+                cv2.circle(top, tp(x, y), 2, (0, 0, 255), -1)
+            th = top.shape[0]
+            top = cv2.resize(top, (int(top.shape[1] * H / th), H))
+            pic = np.concatenate([img, top], axis=1)
+            cv2.putText(pic, f"{a.kind} {a.seed} t={ev['t_s']} {ev['place']} {ev['cause'][:40]}",
+                        (5, 15), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1)
+            cv2.imwrite(str(out / f"{a.kind}-{a.seed}-t{ev['t_s']:05.1f}.png"), pic)
+            zp = kp[zmask]
+            rows = kpx[zmask, 1] * k if len(zp) else np.zeros(0)
+            rec = {**{k_: ev[k_] for k_ in ("t_s", "place", "cause", "reason", "stop_zone_m")},
+                   "zone_points": int(zmask.sum()),
+                   "zone_x_m": [round(float(v), 2) for v in np.percentile(zp[:, 0], [0, 50, 100])]
+                   if len(zp) else None,
+                   "zone_h_m": [round(float(v), 2) for v in np.percentile(kh[zmask], [0, 50, 100])]
+                   if len(zp) else None,
+                   "zone_rows_px": [int(v) for v in np.percentile(rows, [0, 50, 100])]
+                   if len(zp) else None,
+                   "horizon_row_px": None if vh is None else round(float(vh), 1),
+                   "image_hw": [H, W],
+                   "model_updates": int(pipe.novelty.model.updates),
+                   "model_samples": int(pipe.novelty.model.size),
+                   "novel_fraction": float(nres.mask.mean()),
+                   "vehicle": {"speed": round(d.vehicle.speed, 2),
+                               "pitch_deg": round(float(getattr(res.inputs.vehicle, "pitch_rad",
+                                                                0.0) or 0.0) * 57.3, 2)
+                               if res.inputs.vehicle is not None else None},
+                   "before": list(hist)}
+            log.write(json.dumps(rec) + "\n")
+            log.flush()
+
+    d.daemon.loop.on_cycle.append(after)
+    r = d.run()
+    res = r["result"]
+    print(json.dumps({k_: res.get(k_) for k_ in ("false_stops", "true_stops", "missed_stops",
+                                                 "collisions")}))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
