@@ -29,7 +29,9 @@ from __future__ import annotations
 
 import collections
 import math
+import os
 import queue
+import select
 import time
 
 import numpy as np
@@ -281,6 +283,30 @@ class StrobeSerialTrigger(Reconnecting, StrobeTrigger):
             self._send(c)
         self._next_status = 0.0
 
+    WRITE_TIMEOUT_S = 0.2
+
+    def _write_all(self, data: bytes) -> None:
+        """Write every byte, waiting at most WRITE_TIMEOUT_S for the port to take more. Not
+        pyserial's write with a write_timeout: after a complete write it checks the clock and
+        raises 'Write timeout' if the thread was descheduled that long (a loaded box, the
+        soak's starved daemon), a reconnect over a write that went out (found by
+        tests/fuzz/fuzz_strobe.py at nice 19 beside the soak; input regress-write-after-stall)."""
+        view, end = memoryview(data), None
+        while view:
+            try:
+                n = os.write(self._ser.fd, view)
+            except BlockingIOError:
+                n = 0
+            view = view[n:]
+            if not view:
+                return
+            now = time.monotonic()
+            end = end or now + self.WRITE_TIMEOUT_S
+            if now >= end:
+                raise OSError(f"write timed out: {len(view)} byte(s) not taken in "
+                              f"{self.WRITE_TIMEOUT_S:g} s")
+            select.select([], [self._ser.fd], [], end - now)
+
     def _send(self, payload: str) -> None:
         import serial
         if payload == "STATUS?":
@@ -295,7 +321,7 @@ class StrobeSerialTrigger(Reconnecting, StrobeTrigger):
                 self._judge_after = t + 2 * self.ack_timeout_s
             self._status_sent.append(t)
         try:
-            self._ser.write(frame_line(payload))
+            self._write_all(frame_line(payload))
         except (serial.SerialException, OSError) as exc:
             raise DeviceOperationError(f"write to {self.port} failed: {exc}") from None
         word = payload.split()[0]
