@@ -721,12 +721,20 @@ class Soak:
             pid = self.box.kinect_child()
             if pid is None:
                 raise RuntimeError("the freenect driver's helper process is not running")
-            if kind == "kinect_unplug":           # what a USB unplug does to it: it ends
+            dump = Path(self.box.kinect[0])
+            if kind == "kinect_unplug":
+                # what a USB unplug does: the helper ends, and no new one finds a Kinect until
+                # it is plugged back (fakenect without its dump exits as libfreenect would
+                # fail to open a device; only killing the helper was back in ~0.5 s, as the
+                # driver restarts it at once, so the "unplug" did not last)
+                os.rename(dump, dump.with_name(dump.name + ".unplugged"))
                 os.kill(pid, signal.SIGKILL)
             else:                                 # the Kinect hangs: no frames
                 os.kill(pid, signal.SIGSTOP)
             f["t_detect"] = now() + KINECT_TIMEOUT
             time.sleep(hold)
+            if kind == "kinect_unplug":
+                os.rename(dump.with_name(dump.name + ".unplugged"), dump)
             if kind == "kinect_silent":
                 try:
                     os.kill(pid, signal.SIGCONT)  # (the driver may have replaced it by now)
