@@ -595,18 +595,25 @@ def test_answers_later_than_the_timeout_do_not_shift_the_pairing():
     assert dev.counters.get("stalls", 0) == 0, dev.counters
 
 
-def test_a_controller_saying_not_armed_in_every_line_gets_one_arm_at_a_time():
-    """300 STATUS lines saying "not armed" arrive at once (a confused controller, or the
-    fuzzer's input): the driver asks ARM once and waits for its OK (ack_timeout_s), instead of
-    queueing one ARM per line and writing them all in one burst (which filled the serial line's buffer: a write
-    timeout and a reconnect, tests/fuzz/fuzz_strobe.py)."""
+def _driver_on_a_pty():
+    """The driver connected to the slave side of a pseudo-terminal whose (raw, non-blocking)
+    master side the test plays the controller on: (master fd, slave fd, driver)."""
     import tty
-    from drivers.strobe_serial import frame_line
     master, slave = os.openpty()
     tty.setraw(master)
     os.set_blocking(master, False)
     dev = StrobeSerialTrigger("trigger", MonotonicClock(), port=os.ttyname(slave))
     dev._connect()
+    return master, slave, dev
+
+
+def test_a_controller_saying_not_armed_in_every_line_gets_one_arm_at_a_time():
+    """300 STATUS lines saying "not armed" arrive at once (a confused controller, or the
+    fuzzer's input): the driver asks ARM once and waits for its OK (ack_timeout_s), instead of
+    queueing one ARM per line and writing them all in one burst (which filled the serial line's
+    buffer: a write timeout and a reconnect, tests/fuzz/fuzz_strobe.py)."""
+    from drivers.strobe_serial import frame_line
+    master, slave, dev = _driver_on_a_pty()
     try:
         def drain():
             out = b""
@@ -646,13 +653,8 @@ def test_a_write_that_went_out_is_not_a_timeout_however_late_the_thread_runs(mon
     soak's starved daemon): the bytes went out, so nothing failed. pyserial's write with a
     write_timeout checks the clock after a complete write and raised 'Write timeout' here:
     the driver dropped a working port (found by tests/fuzz/fuzz_strobe.py)."""
-    import tty
     real_write = os.write
-    master, slave = os.openpty()
-    tty.setraw(master)
-    os.set_blocking(master, False)
-    dev = StrobeSerialTrigger("trigger", MonotonicClock(), port=os.ttyname(slave))
-    dev._connect()
+    master, slave, dev = _driver_on_a_pty()
     try:
         def late_write(fd, data):
             n = real_write(fd, data)
