@@ -566,10 +566,13 @@ def test_answers_later_than_the_timeout_do_not_shift_the_pairing():
                 if hold and hold[0] <= now < hold[1]:
                     held.append(ans)                # held back ...
                     continue
-                for h in held:                      # ... and sent late, all at once
-                    os.write(master, h)
-                held.clear()
-                os.write(master, ans)
+                try:
+                    for h in held:                  # ... and sent late, all at once
+                        os.write(master, h)
+                    held.clear()
+                    os.write(master, ans)
+                except OSError:                     # the test has ended and closed the pty
+                    return
 
     th = threading.Thread(target=controller, daemon=True)
     th.start()
@@ -590,8 +593,8 @@ def test_answers_later_than_the_timeout_do_not_shift_the_pairing():
         dev.close()
         stop.set()
         os.close(slave)
-        os.close(master)
         th.join(2)
+        os.close(master)
     assert dev.counters.get("stalls", 0) == 0, dev.counters
 
 
