@@ -312,8 +312,12 @@ class Drive:
             else:
                 self._streak.pop(k, None)
         place = "near an obstacle" if near else ("headland" if self.headland() else "lane")
-        # STOP episodes
-        if is_stop and self._prev_state not in (None, GateState.STOP):
+        # STOP episodes: a change into STOP, or the boot STOP (never an episode) going on as a
+        # STOP for an obstacle: a vehicle that never left its boot STOP because of something
+        # in the stop zone was stopped by it (a drive sat 12.8 s in such a STOP for nothing and
+        # scored 0 false stops)
+        if is_stop and (self._prev_state not in (None, GateState.STOP) or (
+                obstacle_stop and self._episode is None and self._prev_state is not None)):
             fault = not obstacle_stop and not out.reason.startswith("holding")
             nearest = min(in_stop, key=lambda o: o["ahead"]) if in_stop else None
             kind = "fault" if fault and res.faults else ("true" if nearest else "false")

@@ -250,3 +250,40 @@ def test_interrupted_campaign_writes_the_finished_drives_summary(campaigns, tmp_
     s = json.loads((out / "summary.json").read_text())
     assert s["complete"] is False and s["drives"] == 1 and s["drives_planned"] == 2
     assert s["per_drive"] == [d for d in local["per_drive"] if d["seed"] == 1]
+
+
+def test_a_boot_stop_that_goes_on_for_a_phantom_is_a_false_stop():
+    """The box boots in STOP; if it never leaves it because something stands in the stop zone,
+    the vehicle was stopped by that all the same. With nothing real there it is a false stop
+    (before: only a change INTO STOP started an episode, so a drive that sat 12.8 s in such a
+    STOP scored 0 false stops and showed only in false_stop_s)."""
+    from types import SimpleNamespace as NS
+    import numpy as np
+    from appliance.campaign_drive import Drive, deep_merge, drive_config_data
+    from hal.types import GateState
+    data = deep_merge(drive_config_data("stubble-coverage", 1, stereo_scale=0.25),
+                      {"perception": {"pipelines": ["laser"]}})
+    drv = Drive("stubble-coverage", 1, 0.01, config_data=data).build()
+    try:
+        drv.truth = lambda stop_len_m: []                # nothing real anywhere
+        def cycle(i, state, reason):
+            drv.on_cycle(NS(index=i, output=NS(state=state, reason=reason),
+                            verdict=NS(stop_len_m=3.8, nearest_m=1.2),
+                            cells_xy=np.zeros((0, 2)), detections={},
+                            faults=[reason] if reason.startswith("laser") else [],
+                            wall_ms={}))
+        cycle(0, GateState.STOP, "booting")
+        for i in range(1, 6):
+            cycle(i, GateState.STOP, "obstacle 1.2 m ahead in the stop zone (3.8 m)")
+        for i in range(6, 9):
+            cycle(i, GateState.CLEAR, "zone clear")
+        stops = [e for e in drv.events if e["event"] == "stop"]
+        assert drv.counts["false"] == 1 and len(stops) == 1, drv.events
+        assert stops[0]["kind"] == "false" and stops[0]["duration_s"] == 0.5
+        assert "phantom" in stops[0]["cause"]
+        # a STOP that is already an episode is not counted twice when its reason changes
+        cycle(9, GateState.STOP, "laser: stale")
+        cycle(10, GateState.STOP, "obstacle 1.2 m ahead in the stop zone (3.8 m)")
+        assert drv.counts["false"] == 1 and drv.counts["fault"] == 1, drv.events
+    finally:
+        drv.daemon.shutdown()
