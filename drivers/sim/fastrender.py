@@ -109,8 +109,9 @@ def texture(flat, sizes, offsets, u_m, v_m, mpt, footprint):
 # geometry
 # ---------------------------------------------------------------------------------------------
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FM)
-def ground(G, gp, x, y):
-    """Bilinear ground grid: gp = (x0, y0, 1/cell, nx, ny)."""
+def grid_pos(gp, x, y):
+    """(x, y) as fractional node coordinates of the ground grid gp = (x0, y0, 1/cell, nx, ny),
+    clamped inside it: (fx, fy, nx)."""
     fx = (x - gp[0]) * gp[2]
     fy = (y - gp[1]) * gp[2]
     nx = int(gp[3])
@@ -123,6 +124,13 @@ def ground(G, gp, x, y):
         fy = 0.0
     elif fy > ny - 1.000001:
         fy = ny - 1.000001
+    return fx, fy, nx
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FM)
+def ground(G, gp, x, y):
+    """Bilinear ground grid: gp = (x0, y0, 1/cell, nx, ny)."""
+    fx, fy, nx = grid_pos(gp, x, y)
     ix = int(fx)
     iy = int(fy)
     tx = fx - ix
@@ -768,18 +776,7 @@ def expose(rad, pool, dy, dx, flip, night, out):
 def coarse_max(Gc, gp, x, y):
     """The highest ground node around (x, y) on the coarse grid of COARSE x COARSE ground cells
     (world.ground_coarse_max): ground(x, y) <= this everywhere in that coarse cell."""
-    fx = (x - gp[0]) * gp[2]
-    fy = (y - gp[1]) * gp[2]
-    nx = int(gp[3])
-    ny = int(gp[4])
-    if fx < 0.0:
-        fx = 0.0
-    elif fx > nx - 1.000001:
-        fx = nx - 1.000001
-    if fy < 0.0:
-        fy = 0.0
-    elif fy > ny - 1.000001:
-        fy = ny - 1.000001
+    fx, fy, _ = grid_pos(gp, x, y)
     return Gc[int(fy) // COARSE, int(fx) // COARSE]
 
 
