@@ -50,3 +50,20 @@ def test_two_minute_soak_no_false_clear_stop_within_two_cycles_no_fd_growth(tmp_
     assert s["fd_growth"] <= 0, brief
     for png in ("rss_fds.png", "timeline.png", "latency.png"):
         assert (tmp_path / png).stat().st_size > 1000
+
+
+def test_stop_latency_counts_a_can_frame_in_the_cycle_that_sent_it():
+    """The soak counts a STOP's latency in the box's cycles, one OBSTACLE_DISTANCE a cycle on
+    the wire. A cycle's HEARTBEAT arrives just before its OBSTACLE_DISTANCE and its CAN frame just
+    before or just after it; the hour at 34114a2 put CAN frames that came 0-8 ms after their
+    cycle's OBSTACLE_DISTANCE a cycle later than the HEARTBEAT of the same cycle (3 cycles
+    against 2 at the same millisecond)."""
+    from tools.soak import wire_cycles
+    od = [10.0 + 0.1 * i for i in range(10)]          # cycles' OBSTACLE_DISTANCE at 10.0 ... 10.9
+    td = 10.05                                        # the fault became detectable
+    assert wire_cycles(od, td, 10.099) == 1           # HEARTBEAT of the next cycle, before its OD
+    assert wire_cycles(od, td, 10.102) == 1           # CAN frame of that cycle, 2 ms after its OD
+    assert wire_cycles(od, td, 10.199) == 2           # the cycle after
+    assert wire_cycles(od, td, 10.204) == 2
+    assert wire_cycles(od, td, 10.299) == 3
+    assert wire_cycles(od, td, 10.06) == 1            # within the cycle it became detectable in

@@ -96,6 +96,22 @@ NEEDS = {"gige_unplug": "gige", "gige_silent": "gige", "clock_step": "wallstep",
          "disk_full": "tmpfs"}
 
 
+# A frame the box sent in one cycle reaches its listener up to this long after that cycle's
+# OBSTACLE_DISTANCE (the CAN and MAVLink sends of one cycle come in either order).
+SAME_CYCLE_S = 0.02
+
+
+def wire_cycles(od: list[float], td: float, ts: float) -> int:
+    """The box's cycles from ``td`` (the fault became detectable) to the one that sent STOP at
+    ``ts``, counted on the wire: one OBSTACLE_DISTANCE a cycle (``od``, sorted receive times).
+    The STOP belongs to the cycle of the first OBSTACLE_DISTANCE at or after ``ts`` - SAME_CYCLE_S:
+    a HEARTBEAT goes out just before its cycle's OBSTACLE_DISTANCE, a CAN frame just before or
+    just after it. (Counting every OBSTACLE_DISTANCE up to ``ts`` put a CAN frame that arrived
+    2 ms after its cycle's one a cycle later than the HEARTBEAT of the same cycle.)"""
+    stop_cycle = bisect.bisect_left(od, ts - SAME_CYCLE_S)
+    return max(1, stop_cycle - bisect.bisect_right(od, td) + 1)
+
+
 def die(msg: str) -> None:
     print(f"fieldguard: error: {msg}", file=sys.stderr)
     sys.exit(2)
@@ -851,9 +867,7 @@ class Soak:
 
         od = sorted(e["t"] for e in self.wire.events("mav") if e.get("ev") == "od")
         def cycles(td, ts):
-            """The box's cycles from ``td`` to the one that sent STOP at ``ts``, counted on the
-            wire: one OBSTACLE_DISTANCE a cycle, sent after that cycle's HEARTBEAT."""
-            return bisect.bisect_right(od, ts) - bisect.bisect_right(od, td) + 1
+            return wire_cycles(od, td, ts)
 
         def nth_cycle_after(td, n):
             i = bisect.bisect_right(od, td) + n - 1
