@@ -536,6 +536,10 @@ class Soak:
                     for line in f:
                         if line.startswith("VmRSS:"):
                             s["rss_mb"] = int(line.split()[1]) / 1024
+                        elif line.startswith("RssAnon:"):    # the heap, arenas, buffers
+                            s["anon_mb"] = int(line.split()[1]) / 1024
+                        elif line.startswith("RssFile:"):    # mapped code and files paged in
+                            s["file_mb"] = int(line.split()[1]) / 1024
                 s["fds"] = len(os.listdir(f"/proc/{pid}/fd"))
                 with open(f"/proc/{pid}/stat") as f:       # utime + stime: the box's own CPU
                     st = f.read().rsplit(")", 1)[1].split()
@@ -999,9 +1003,12 @@ class Soak:
             if best is None or warm[-1]["t"] - warm[0]["t"] > best[-1]["t"] - best[0]["t"]:
                 best = warm
 
-        def sums(seg):
+        def sums(seg, key="rss_mb"):
+            seg = [s for s in seg if key in s]
+            if len(seg) < 2:
+                return 0.0, 0.0
             xs = [(s["t"] - seg[0]["t"]) / 3600 for s in seg]
-            ys = [s["rss_mb"] for s in seg]
+            ys = [s[key] for s in seg]
             mx, my = sum(xs) / len(xs), sum(ys) / len(ys)
             return (sum((x - mx) * (y - my) for x, y in zip(xs, ys)),
                     sum((x - mx) ** 2 for x in xs))
@@ -1015,6 +1022,13 @@ class Soak:
             slope = sum(n for n, _ in parts) / den if den else 0.0
             n, d = sums(best)
             longest = n / d if d else 0.0
+        # RSS split: anonymous memory (what a leak grows) and file-backed pages (library code
+        # paged in the first time a fault's code path runs: grows early, then saturates)
+        split = {}
+        for key in ("anon_mb", "file_mb"):
+            parts = [sums(seg, key) for seg in judged]
+            den = sum(d for _, d in parts)
+            split[key] = round(sum(n for n, _ in parts) / den, 3) if den else None
         cpu_t = cpu_wall = 0.0          # the daemon's CPU time / wall time, over its processes
         for inc, ss in segs.items():
             c = [x for x in ss if "cpu_s" in x]
@@ -1060,6 +1074,8 @@ class Soak:
             "recoveries": sum(1 for f in self.faults if f.get("recovered_at")),
             "restarts": len(starts) - 1,
             "rss_slope_mb_per_h": None if slope is None else round(slope, 3),
+            "rss_anon_slope_mb_per_h": split.get("anon_mb") if judged else None,
+            "rss_file_slope_mb_per_h": split.get("file_mb") if judged else None,
             "rss_judged_over_s": round(sum(seg[-1]["t"] - seg[0]["t"] for seg in judged)),
             "rss_processes_judged": len(judged),
             "rss_slope_longest_process_mb_per_h": None if longest is None else round(longest, 3),
