@@ -328,6 +328,8 @@ class Track:
     points: int = 0
     confidence_in: float = 0.0    # the newest candidate's confidence
     pipelines: tuple[str, ...] = ()
+    strength_in: dict = field(default_factory=dict)   # the newest candidate's, per source
+    ended_ns: int | None = None   # when a confirmed track ended (remembered for reacquire_s)
 
     @property
     def logodds(self) -> float:
@@ -385,9 +387,11 @@ class Tracker:
         self._vehicle_v = np.zeros(2)      # the vehicle's velocity over ground, world frame
         self.stamp_ns = 0
         self.last_measurements: list[Measurement] = []
+        self.lost: list[Track] = []         # confirmed tracks that ended (reacquire_s)
 
     def reset(self) -> None:
         self.tracks.clear()
+        self.lost.clear()
         self._last_ns = None
 
     # -- frames ----------------------------------------------------------------------------
@@ -457,7 +461,11 @@ class Tracker:
     def _observe(self, t: Track, m: Measurement) -> None:
         w = self.cfg.weights
         cap = self.cfg.source_cap_frames
-        for s, v in m.strength.items():
+        strength = dict(m.strength)
+        if self.cfg.laser_fast and strength.get("laser", 0.0) > 0:
+            strength["laser"] = 1.0       # a return cluster is a measured surface
+        t.strength_in = strength
+        for s, v in strength.items():
             ws = float(getattr(w, s, 0.0))
             if ws <= 0 or v <= 0:
                 continue
@@ -498,22 +506,44 @@ class Tracker:
 
     # -- one cycle -------------------------------------------------------------------------
     def update(self, detections: dict[str, Detections], vehicle: VehicleState | None,
-               now_ns: int, occupied: np.ndarray | None = None) -> list[TrackView]:
+               now_ns: int, occupied: np.ndarray | None = None,
+               stop_zone: tuple[float, float, float] | None = None) -> list[TrackView]:
         ms = measurements(detections, self.grid, self.cfg, occupied)
-        return self.update_measurements(ms, vehicle, now_ns)
+        return self.update_measurements(ms, vehicle, now_ns, stop_zone)
+
+    def _fast(self, t: Track, stop_zone) -> bool:
+        """Confirmed on this frame's candidate alone: a laser return cluster (laser_fast), or
+        a cell in the stop zone with strong geometry or laser evidence (stop_zone_strength)."""
+        c = self.cfg
+        if c.laser_fast and t.strength_in.get("laser", 0.0) > 0:
+            return True
+        if c.stop_zone_strength > 0 and stop_zone is not None and len(t.cells_xy):
+            s = max(t.strength_in.get("geometry", 0.0), t.strength_in.get("laser", 0.0))
+            x0, x1, hw = stop_zone
+            cx, cy = t.cells_xy[:, 0], t.cells_xy[:, 1]
+            if s >= c.stop_zone_strength - 1e-9 and bool(
+                    np.any((cx >= x0) & (cx <= x1) & (np.abs(cy) <= hw))):
+                return True
+        return False
 
     def update_measurements(self, ms: list[Measurement], vehicle: VehicleState | None,
-                            now_ns: int) -> list[TrackView]:
+                            now_ns: int, stop_zone: tuple[float, float, float] | None = None
+                            ) -> list[TrackView]:
         c = self.cfg
         dt = 0.0 if self._last_ns is None else (now_ns - self._last_ns) / 1e9
         self._last_ns = now_ns
         self.stamp_ns = now_ns
         if dt > 2.0 or dt < 0:           # a gap: old tracks mean nothing
             self.tracks.clear()
+            self.lost.clear()
             dt = 0.0
         self._move(dt, vehicle)
         self.last_measurements = ms
         for t in self.tracks:
+            self._predict(t, dt)
+        self.lost = [t for t in self.lost
+                     if (now_ns - t.ended_ns) / 1e9 <= c.reacquire_s + 1e-9][-c.max_tracks:]
+        for t in self.lost:
             self._predict(t, dt)
         zs = self.to_world(np.array([[m.x_m, m.y_m] for m in ms])) if ms else np.zeros((0, 2))
         matched_t: dict[int, int] = {}
@@ -546,6 +576,32 @@ class Tracker:
             t.misses = 0
             t.last_hit_ns = now_ns
             self._observe(t, m)
+        new = [j for j in range(len(ms)) if j not in used]
+        if self.lost and new:         # seen again where a confirmed track ended: it is back
+            tp = np.array([t.state[:2] for t in self.lost])
+            zn = zs[new]
+            d = np.hypot(tp[:, None, 0] - zn[None, :, 0], tp[:, None, 1] - zn[None, :, 1])
+            text = np.array([max(t.length_m, t.width_m) for t in self.lost]) / 2
+            mext = np.array([max(ms[j].length_m, ms[j].width_m) for j in new]) / 2
+            big = 1e6
+            cost = np.where(d <= c.gate_m + text[:, None] + mext[None, :], d, big)
+            rows, cols = linear_sum_assignment(cost)
+            back = set()
+            for r_, c_ in zip(rows.tolist(), cols.tolist()):
+                if cost[r_, c_] >= big:
+                    continue
+                t, j = self.lost[r_], new[c_]
+                m = ms[j]
+                self._correct(t, zs[j], max(m.length_m, m.width_m))
+                t.hits += 1
+                t.misses = 0
+                t.last_hit_ns = now_ns
+                t.ended_ns = None
+                self._observe(t, m)
+                self.tracks.append(t)
+                back.add(r_)
+                used.add(j)
+            self.lost = [t for k, t in enumerate(self.lost) if k not in back]
         for j, m in enumerate(ms):
             if j not in used:
                 self.tracks.append(self._new_track(m, zs[j], now_ns))
@@ -554,7 +610,14 @@ class Tracker:
         for t in self.tracks:
             unseen = (now_ns - t.last_hit_ns) / 1e9
             if t.confirmed:
-                if unseen > c.coast_s + 1e-9 or (t.misses and t.logodds < c.release_logodds):
+                fused = (c.coast_fused_s > 0 and "laser" in t.seen_by
+                         and len(t.seen_by - {"laser"}) > 0 and self._still(t)
+                         and unseen <= c.coast_fused_s + 1e-9)
+                if not fused and (unseen > c.coast_s + 1e-9 or (
+                        t.misses and t.logodds < c.release_logodds and c.release_unseen)):
+                    if c.reacquire_s > 0 and self._still(t):
+                        t.ended_ns = now_ns
+                        self.lost.append(t)
                     continue
                 if not self._still(t):
                     t.confirmed = False
@@ -563,8 +626,9 @@ class Tracker:
                     continue
                 pv = self.to_vehicle(t.state[None, :2])[0]
                 need = self.frames_needed(float(np.hypot(*pv)), max(t.length_m, t.width_m))
-                if (t.misses == 0 and t.logodds >= c.confirm_logodds - 1e-9 and t.hits >= need
-                        and self._still(t)):
+                if t.misses == 0 and self._still(t) and (
+                        (t.logodds >= c.confirm_logodds - 1e-9 and t.hits >= need)
+                        or self._fast(t, stop_zone)):
                     t.confirmed = True
                     t.confirmed_ns = now_ns
             keep.append(t)
