@@ -329,7 +329,6 @@ class Track:
     confidence_in: float = 0.0    # the newest candidate's confidence
     pipelines: tuple[str, ...] = ()
     strength_in: dict = field(default_factory=dict)   # the newest candidate's, per source
-    ended_ns: int | None = None   # when a confirmed track ended (remembered for reacquire_s)
 
     @property
     def logodds(self) -> float:
@@ -387,11 +386,9 @@ class Tracker:
         self._vehicle_v = np.zeros(2)      # the vehicle's velocity over ground, world frame
         self.stamp_ns = 0
         self.last_measurements: list[Measurement] = []
-        self.lost: list[Track] = []         # confirmed tracks that ended (reacquire_s)
 
     def reset(self) -> None:
         self.tracks.clear()
-        self.lost.clear()
         self._last_ns = None
 
     # -- frames ----------------------------------------------------------------------------
@@ -535,15 +532,10 @@ class Tracker:
         self.stamp_ns = now_ns
         if dt > 2.0 or dt < 0:           # a gap: old tracks mean nothing
             self.tracks.clear()
-            self.lost.clear()
             dt = 0.0
         self._move(dt, vehicle)
         self.last_measurements = ms
         for t in self.tracks:
-            self._predict(t, dt)
-        self.lost = [t for t in self.lost
-                     if (now_ns - t.ended_ns) / 1e9 <= c.reacquire_s + 1e-9][-c.max_tracks:]
-        for t in self.lost:
             self._predict(t, dt)
         zs = self.to_world(np.array([[m.x_m, m.y_m] for m in ms])) if ms else np.zeros((0, 2))
         matched_t: dict[int, int] = {}
@@ -576,32 +568,6 @@ class Tracker:
             t.misses = 0
             t.last_hit_ns = now_ns
             self._observe(t, m)
-        new = [j for j in range(len(ms)) if j not in used]
-        if self.lost and new:         # seen again where a confirmed track ended: it is back
-            tp = np.array([t.state[:2] for t in self.lost])
-            zn = zs[new]
-            d = np.hypot(tp[:, None, 0] - zn[None, :, 0], tp[:, None, 1] - zn[None, :, 1])
-            text = np.array([max(t.length_m, t.width_m) for t in self.lost]) / 2
-            mext = np.array([max(ms[j].length_m, ms[j].width_m) for j in new]) / 2
-            big = 1e6
-            cost = np.where(d <= c.gate_m + text[:, None] + mext[None, :], d, big)
-            rows, cols = linear_sum_assignment(cost)
-            back = set()
-            for r_, c_ in zip(rows.tolist(), cols.tolist()):
-                if cost[r_, c_] >= big:
-                    continue
-                t, j = self.lost[r_], new[c_]
-                m = ms[j]
-                self._correct(t, zs[j], max(m.length_m, m.width_m))
-                t.hits += 1
-                t.misses = 0
-                t.last_hit_ns = now_ns
-                t.ended_ns = None
-                self._observe(t, m)
-                self.tracks.append(t)
-                back.add(r_)
-                used.add(j)
-            self.lost = [t for k, t in enumerate(self.lost) if k not in back]
         for j, m in enumerate(ms):
             if j not in used:
                 self.tracks.append(self._new_track(m, zs[j], now_ns))
@@ -614,10 +580,7 @@ class Tracker:
                          and len(t.seen_by - {"laser"}) > 0 and self._still(t)
                          and unseen <= c.coast_fused_s + 1e-9)
                 if not fused and (unseen > c.coast_s + 1e-9 or (
-                        t.misses and t.logodds < c.release_logodds and c.release_unseen)):
-                    if c.reacquire_s > 0 and self._still(t):
-                        t.ended_ns = now_ns
-                        self.lost.append(t)
+                        t.misses and t.logodds < c.release_logodds)):
                     continue
                 if not self._still(t):
                     t.confirmed = False
