@@ -26,9 +26,14 @@ One cycle (:meth:`Tracker.update`):
    (``large_m``), up to ``confirm_frames_max`` when it is far and small, and (after
    ``speed_check_frames`` hits) it stays where it was: over ground no faster than
    ``max_speed_mps`` and, while the vehicle moves, not moving along with the vehicle (within
-   ``comoving_mps``: a stereo artefact or the vehicle's own shadow). A confirmed track is kept
+   ``comoving_mps``: a stereo artefact or the vehicle's own shadow). Confirmed on its first
+   frame: a laser return cluster (``laser_fast``: it counts at full strength), and a candidate
+   with a cell in the stop zone (given by the decision core) and geometry or laser strength at
+   least ``stop_zone_strength``. A confirmed track is kept
    while unseen for ``coast_s`` (occlusion), a tentative one for ``tentative_coast_s``; a
-   confirmed track whose evidence falls under ``release_logodds`` ends.
+   confirmed track whose evidence falls under ``release_logodds`` ends; with
+   ``coast_fused_s`` a still track the laser and a camera cue both saw is held that long
+   unseen whatever its evidence.
 
 Pure code: arrays in, tracks out; no I/O.
 """

@@ -332,11 +332,18 @@ def test_an_obstacle_first_seen_in_the_stop_zone_stops_on_the_same_cycle_as_the_
     # only in the stop zone, and only on strong evidence: a weak candidate there waits
     assert _stop_cycles(tracks_cfg(), [_stereo(3.5, 0.0, conf=0.3) for _ in range(4)])[1] is False
     assert _stop_cycles(tracks_cfg(stop_zone_strength=0.0), frames)[1] is False
+    # and only in the stop zone: the same candidate 8 m ahead (slow zone) is confirmed after
+    # the frames its range and size need (3 tracker frames here), not at once
+    core = DecisionCore(tracks_cfg())
+    slow = [core.perceive(f, VehicleState(0, 0), k * DT).verdict.in_slow > 0
+            for k, f in enumerate([_stereo(8.0, 0.0) for _ in range(4)])]
+    assert core.tracker.frames_needed(8.0, 0.5) == 3
+    assert slow == [False, False, False, True]
 
 
 def test_a_laser_return_cluster_confirms_on_the_grids_second_hit():
     """A pole two laser beams hit (the front end's laser candidate: confidence 0.18): with the
-    laser's strength scaled by its return count it needed 11 frames to confirm; a laser return
+    laser's strength scaled by its return count it needed 12 frames to confirm; a laser return
     cluster is a measured surface, so it confirms when the grid holds it (two cycles), as the
     cell decision stops for it."""
     from appliance.perception import Candidate
@@ -354,6 +361,7 @@ def test_a_laser_return_cluster_confirms_on_the_grids_second_hit():
             for k, f in enumerate(far)]
     assert slow == [False, True, True]
     core = DecisionCore(tracks_cfg(laser_fast=False))
+    far = far + far * 4
     slow = [core.perceive(f, VehicleState(0, 0), k * DT).verdict.in_slow > 0
             for k, f in enumerate(far)]
-    assert slow == [False, False, False]
+    assert slow.index(True) == 12          # 0.18 a frame from the grid's second hit on
