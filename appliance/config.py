@@ -127,6 +127,15 @@ class TrackingConfig:
     predict_min_mps: float = _f(0.4, lo=0.0, hi=10.0,
                                 doc="slower than this: not predicted (noise on a still object)")
     max_tracks: int = _f(300, lo=1, hi=100000)
+    stop_zone_strength: float = _f(0.8, lo=0.0, hi=1.0,
+                                   doc="a tentative track with a cell in the stop zone and a "
+                                       "geometry or laser strength at least this confirms at "
+                                       "once (0 = off)")
+    coast_fused_s: float = _f(0.0, lo=0.0, hi=10.0,
+                              doc="a confirmed, still track the laser and a camera cue both "
+                                  "saw is held unseen this long, whatever its evidence (0 = off)")
+    laser_fast: bool = _f(True, doc="a laser return cluster counts at full strength and "
+                                     "confirms on the first frame it is seen")
     weights: SourceWeights = field(default_factory=SourceWeights)
 
 

@@ -157,7 +157,9 @@ class DecisionCore:
                           grid_cells)
         else:
             occ = self.grid.occupied_mask() if self.cfg.tracking.input == "occupied" else None
-            tracks = self.tracker.update(detections, vehicle, now_ns, occ)
+            z = self.cfg.zones
+            stop_zone = (z.front_x_m, z.front_x_m + stop_length(speed, z), z.half_width_m)
+            tracks = self.tracker.update(detections, vehicle, now_ns, occ, stop_zone)
             by_id = self.tracker.cells_by_track()
             cells = np.concatenate(list(by_id.values())) if by_id else np.zeros((0, 2))
             pic = Picture(cells, assess_tracks(tracks, cells, speed, self.cfg, by_id), speed,

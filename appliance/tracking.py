@@ -26,9 +26,14 @@ One cycle (:meth:`Tracker.update`):
    (``large_m``), up to ``confirm_frames_max`` when it is far and small, and (after
    ``speed_check_frames`` hits) it stays where it was: over ground no faster than
    ``max_speed_mps`` and, while the vehicle moves, not moving along with the vehicle (within
-   ``comoving_mps``: a stereo artefact or the vehicle's own shadow). A confirmed track is kept
+   ``comoving_mps``: a stereo artefact or the vehicle's own shadow). Confirmed on its first
+   frame: a laser return cluster (``laser_fast``: it counts at full strength), and a candidate
+   with a cell in the stop zone (given by the decision core) and geometry or laser strength at
+   least ``stop_zone_strength``. A confirmed track is kept
    while unseen for ``coast_s`` (occlusion), a tentative one for ``tentative_coast_s``; a
-   confirmed track whose evidence falls under ``release_logodds`` ends.
+   confirmed track whose evidence falls under ``release_logodds`` ends; with
+   ``coast_fused_s`` a still track the laser and a camera cue both saw is held that long
+   unseen whatever its evidence.
 
 Pure code: arrays in, tracks out; no I/O.
 """
@@ -328,6 +333,7 @@ class Track:
     points: int = 0
     confidence_in: float = 0.0    # the newest candidate's confidence
     pipelines: tuple[str, ...] = ()
+    strength_in: dict = field(default_factory=dict)   # the newest candidate's, per source
 
     @property
     def logodds(self) -> float:
@@ -457,7 +463,11 @@ class Tracker:
     def _observe(self, t: Track, m: Measurement) -> None:
         w = self.cfg.weights
         cap = self.cfg.source_cap_frames
-        for s, v in m.strength.items():
+        strength = dict(m.strength)
+        if self.cfg.laser_fast and strength.get("laser", 0.0) > 0:
+            strength["laser"] = 1.0       # a return cluster is a measured surface
+        t.strength_in = strength
+        for s, v in strength.items():
             ws = float(getattr(w, s, 0.0))
             if ws <= 0 or v <= 0:
                 continue
@@ -498,12 +508,29 @@ class Tracker:
 
     # -- one cycle -------------------------------------------------------------------------
     def update(self, detections: dict[str, Detections], vehicle: VehicleState | None,
-               now_ns: int, occupied: np.ndarray | None = None) -> list[TrackView]:
+               now_ns: int, occupied: np.ndarray | None = None,
+               stop_zone: tuple[float, float, float] | None = None) -> list[TrackView]:
         ms = measurements(detections, self.grid, self.cfg, occupied)
-        return self.update_measurements(ms, vehicle, now_ns)
+        return self.update_measurements(ms, vehicle, now_ns, stop_zone)
+
+    def _fast(self, t: Track, stop_zone) -> bool:
+        """Confirmed on this frame's candidate alone: a laser return cluster (laser_fast), or
+        a cell in the stop zone with strong geometry or laser evidence (stop_zone_strength)."""
+        c = self.cfg
+        if c.laser_fast and t.strength_in.get("laser", 0.0) > 0:
+            return True
+        if c.stop_zone_strength > 0 and stop_zone is not None and len(t.cells_xy):
+            s = max(t.strength_in.get("geometry", 0.0), t.strength_in.get("laser", 0.0))
+            x0, x1, hw = stop_zone
+            cx, cy = t.cells_xy[:, 0], t.cells_xy[:, 1]
+            if s >= c.stop_zone_strength - 1e-9 and bool(
+                    np.any((cx >= x0) & (cx <= x1) & (np.abs(cy) <= hw))):
+                return True
+        return False
 
     def update_measurements(self, ms: list[Measurement], vehicle: VehicleState | None,
-                            now_ns: int) -> list[TrackView]:
+                            now_ns: int, stop_zone: tuple[float, float, float] | None = None
+                            ) -> list[TrackView]:
         c = self.cfg
         dt = 0.0 if self._last_ns is None else (now_ns - self._last_ns) / 1e9
         self._last_ns = now_ns
@@ -554,7 +581,11 @@ class Tracker:
         for t in self.tracks:
             unseen = (now_ns - t.last_hit_ns) / 1e9
             if t.confirmed:
-                if unseen > c.coast_s + 1e-9 or (t.misses and t.logodds < c.release_logodds):
+                fused = (c.coast_fused_s > 0 and "laser" in t.seen_by
+                         and len(t.seen_by - {"laser"}) > 0 and self._still(t)
+                         and unseen <= c.coast_fused_s + 1e-9)
+                if not fused and (unseen > c.coast_s + 1e-9 or (
+                        t.misses and t.logodds < c.release_logodds)):
                     continue
                 if not self._still(t):
                     t.confirmed = False
@@ -563,8 +594,9 @@ class Tracker:
                     continue
                 pv = self.to_vehicle(t.state[None, :2])[0]
                 need = self.frames_needed(float(np.hypot(*pv)), max(t.length_m, t.width_m))
-                if (t.misses == 0 and t.logodds >= c.confirm_logodds - 1e-9 and t.hits >= need
-                        and self._still(t)):
+                if t.misses == 0 and self._still(t) and (
+                        (t.logodds >= c.confirm_logodds - 1e-9 and t.hits >= need)
+                        or self._fast(t, stop_zone)):
                     t.confirmed = True
                     t.confirmed_ns = now_ns
             keep.append(t)

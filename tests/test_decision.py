@@ -128,14 +128,15 @@ def test_the_loop_decides_on_tracks_with_the_same_core():
         loop.cycle()
         clock.advance(DT)
     assert loop.gate.state is GateState.CLEAR
-    # one laser beam on a post at 4 m: one cell a frame, weak; it takes several frames to
-    # confirm, and then the loop stops and status names the track
+    # one laser beam on a post at 4 m: a laser return cluster confirms when the grid holds
+    # it (here occupied_at 1.0: the first cycle), so the loop stops at once, as the cell
+    # decision does, and status names the track
     laser.put_obstacle(4.0, 0.0)
     states = []
     for _ in range(12):
         states.append(loop.cycle().output.state)
         clock.advance(DT)
-    assert states[0] is GateState.CLEAR and states[-1] is GateState.STOP
+    assert all(s is GateState.STOP for s in states)
     st = loop.status()
     assert st["obstacles"]["decision"] == "tracks"
     (t,) = st["tracks"]
@@ -302,3 +303,65 @@ def test_stop_at_a_person_walking_into_the_path_costs_at_most_one_cycle():
         first[stop_at] = next(k for k, (o, _) in enumerate(outs)
                               if o.state is GateState.STOP and k > 10)
     assert first[0.0] <= first[1.7] <= first[0.0] + 1
+
+
+def _stop_cycles(cfg: Config, frames: list[dict], speed: float = 0.0) -> list[bool]:
+    core = DecisionCore(cfg)
+    return [core.perceive(f, VehicleState(0, 0, speed_mps=speed), k * DT).verdict.in_stop > 0
+            for k, f in enumerate(frames)]
+
+
+def _stereo(x, y, conf=0.9):
+    from appliance.perception import Candidate
+    pts = blob(x, y, n=5)
+    c = Candidate(x_m=x, y_m=y, length_m=0.5, width_m=0.5, height_m=0.6, points=60,
+                  confidence=conf, sources=("geometry", "novelty"), pipeline="stereo-novelty")
+    return {"stereo-novelty": Detections(points_xy=pts, candidates=(c,))}
+
+
+def test_an_obstacle_first_seen_in_the_stop_zone_stops_on_the_same_cycle_as_the_cells():
+    """#14 item 6, stubble-day 1 frame 164: a crate the perception had lost came back 3.4 m
+    ahead, inside the stop zone; the cells stopped on the cycle its cell was occupied, the
+    tracks one cycle later (a new track needs two frames). A candidate with a cell in the stop
+    zone and strong geometry (or laser) evidence now confirms at once."""
+    frames = [_stereo(3.5, 0.0) for _ in range(4)]       # stop zone 2.6 .. 4.6 m at standstill
+    cells = _stop_cycles(Config(), frames)
+    tracks = _stop_cycles(tracks_cfg(), frames)
+    assert cells == [False, True, True, True]             # the grid's two hits
+    assert tracks == cells
+    # only in the stop zone, and only on strong evidence: a weak candidate there waits
+    assert _stop_cycles(tracks_cfg(), [_stereo(3.5, 0.0, conf=0.3) for _ in range(4)])[1] is False
+    assert _stop_cycles(tracks_cfg(stop_zone_strength=0.0), frames)[1] is False
+    # and only in the stop zone: the same candidate 8 m ahead (slow zone) is confirmed after
+    # the frames its range and size need (3 tracker frames here), not at once
+    core = DecisionCore(tracks_cfg())
+    slow = [core.perceive(f, VehicleState(0, 0), k * DT).verdict.in_slow > 0
+            for k, f in enumerate([_stereo(8.0, 0.0) for _ in range(4)])]
+    assert core.tracker.frames_needed(8.0, 0.5) == 3
+    assert slow == [False, False, False, True]
+
+
+def test_a_laser_return_cluster_confirms_on_the_grids_second_hit():
+    """A pole two laser beams hit (the front end's laser candidate: confidence 0.18): with the
+    laser's strength scaled by its return count it needed 12 frames to confirm; a laser return
+    cluster is a measured surface, so it confirms when the grid holds it (two cycles), as the
+    cell decision stops for it."""
+    from appliance.perception import Candidate
+    pts = np.array([[4.0, 0.02], [4.0, 0.07]])
+    c = Candidate(x_m=4.0, y_m=0.045, length_m=0.2, width_m=0.2, height_m=0.7, points=2,
+                  confidence=0.18, sources=("laser",), pipeline="laser")
+    frames = [{"laser": Detections(points_xy=pts, candidates=(c,))} for _ in range(4)]
+    assert _stop_cycles(Config(), frames) == [False, True, True, True]
+    assert _stop_cycles(tracks_cfg(), frames) == [False, True, True, True]
+    # off the stop zone too (the stop-zone rule does not apply): 8 m ahead, a SLOW at once
+    far = [{"laser": Detections(points_xy=pts + [4.0, 0.0], candidates=(
+        dataclasses.replace(c, x_m=8.0),))} for _ in range(3)]
+    core = DecisionCore(tracks_cfg())
+    slow = [core.perceive(f, VehicleState(0, 0), k * DT).verdict.in_slow > 0
+            for k, f in enumerate(far)]
+    assert slow == [False, True, True]
+    core = DecisionCore(tracks_cfg(laser_fast=False))
+    far = far + far * 4
+    slow = [core.perceive(f, VehicleState(0, 0), k * DT).verdict.in_slow > 0
+            for k, f in enumerate(far)]
+    assert slow.index(True) == 12          # 0.18 a frame from the grid's second hit on

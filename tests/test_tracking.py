@@ -113,8 +113,9 @@ def test_random_speckle_is_never_confirmed():
 
 def test_one_noisy_cue_alone_does_not_confirm_two_that_agree_do():
     # a weak cue: capped below the confirmation threshold on its own
+    # (laser_fast off: the evidence model itself; with it the laser confirms on its own)
     cfg = TrackingConfig(weights=SourceWeights(laser=0.3, geometry=0.3), confirm_logodds=2.0,
-                         source_cap_frames=5.0)
+                         source_cap_frames=5.0, laser_fast=False)
     tr = Tracker(cfg)
     views = run(tr, [{"laser": blob(8.0, 0.0)} for _ in range(15)])
     assert not any(v.confirmed for v in views[-1])
@@ -182,3 +183,18 @@ def test_a_candidates_cells_are_its_points_not_its_filled_footprint():
     # a front end that gives candidates and no points: their footprints
     (m,) = measurements({"x": Detections(candidates=(big,))}, GridConfig(), TrackingConfig(), occ)
     assert len(m.cells_xy) > 1000
+
+
+def test_a_track_the_laser_and_stereo_both_saw_can_be_held_longer_unseen():
+    """coast_fused_s (off by default, docs/tracking.md): a still track seen by the laser and
+    a camera cue is held unseen that long whatever its evidence; one cue alone is not."""
+    cfg = TrackingConfig(coast_fused_s=1.0)
+    both = [{"laser": blob(8.0, 0.0, n=1), "stereo": blob(8.0, 0.0)} for _ in range(6)]
+    views = run(Tracker(cfg), both + [{} for _ in range(12)])
+    held = [any(v.confirmed for v in vv) for vv in views]
+    assert held[5] and held[15] and not held[16]         # 1.0 s unseen: held; 1.1 s: gone
+    views = run(Tracker(TrackingConfig()), both + [{} for _ in range(12)])
+    assert not any(v.confirmed for v in views[11])       # default: coast_s at most
+    alone = [{"stereo": blob(8.0, 0.0)} for _ in range(6)]
+    views = run(Tracker(cfg), alone + [{} for _ in range(12)])
+    assert not any(v.confirmed for v in views[11])
