@@ -65,6 +65,21 @@ class StereoConfig:
                                      "above the level plane z = 0 (paper)")
     ground_max_range_m: float = _f(25.0, lo=3.0, hi=200.0,
                                    doc="ground_fit: points up to this far ahead carry the fit")
+    ground_local: bool = _f(False, doc="height above the LOCAL ground: per ground_local_cell_m "
+                                        "bin, the low envelope (ground_local_percentile) of "
+                                        "the points' heights above the ground (level, or the "
+                                        "fit with ground_fit), eroded over the neighbouring "
+                                        "bins so an object cannot lift the ground under it "
+                                        "(perception/ground.py local_ground). A stubble tuft "
+                                        "on a rise is measured from the rise")
+    ground_local_cell_m: float = _f(0.5, lo=0.1, hi=5.0, doc="ground_local: bin size (m)")
+    ground_local_percentile: float = _f(10.0, lo=0.0, hi=50.0,
+                                        doc="ground_local: the bin's low percentile")
+    ground_local_erode: int = _f(1, lo=0, hi=5, doc="ground_local: the minimum over the bin "
+                                                    "and its neighbours this many bins away")
+    ground_local_max_dev_m: float = _f(0.5, lo=0.0, hi=3.0,
+                                       doc="ground_local: at most this far from the level "
+                                           "plane or the fit")
     sky_far_m: float = _f(0.0, lo=0.0, hi=200.0,
                           doc="points farther than this and higher above the ground than the "
                               "camera are the sky or the skyline, not obstacles (0 = off)")
@@ -619,14 +634,19 @@ def point_confidence(disp: np.ndarray, px: np.ndarray, scale_px: float) -> np.nd
 
 def local_heights(pts: np.ndarray, o, camera_z_m: float, fit_pts: np.ndarray | None = None):
     """(heights (N,), ground model) of points (N, 3): above the ground fitted to ``fit_pts``
-    (default ``pts``) with ``ground_fit``, else above z = 0 (paper). With ``sky_far_m`` the
+    (default ``pts``) with ``ground_fit``, else above z = 0 (paper); with ``ground_local``
+    above the local low envelope of ``fit_pts`` over that (:func:`.ground.local_ground`). With ``sky_far_m`` the
     points it calls sky get height -inf (never in a band)."""
-    from .ground import GroundModel, fit_ground, horizon_far_mask
+    from .ground import GroundModel, fit_ground, horizon_far_mask, local_ground
+    src = pts if fit_pts is None else fit_pts
     if getattr(o, "ground_fit", False):
-        src = pts if fit_pts is None else fit_pts
         g = fit_ground(src, x_max_m=min(o.ground_max_range_m, o.max_range_m))
     else:
         g = GroundModel.level()
+    if getattr(o, "ground_local", False):
+        g = local_ground(src, g, x_max_m=min(o.ground_max_range_m, o.max_range_m),
+                         cell_m=o.ground_local_cell_m, percentile=o.ground_local_percentile,
+                         erode_cells=o.ground_local_erode, max_dev_m=o.ground_local_max_dev_m)
     h = g.height(pts)
     far = getattr(o, "sky_far_m", 0.0)
     if far > 0 and len(h):

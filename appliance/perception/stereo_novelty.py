@@ -331,7 +331,8 @@ class StereoNoveltyPipeline(Pipeline):
         return disp, kc, calib, pts, px
 
     def _ground_only(self, fr, vehicle) -> None:
-        """``ground_fit`` without the depth cue: the coarse pass for the ground alone."""
+        """``ground_fit`` / ``ground_local`` without the depth cue: the coarse pass for the
+        ground alone."""
         _, _, calib, pts, _ = self._coarse_pass(fr, vehicle, "bm")
         self._coarse_heights(pts, calib)
 
@@ -426,7 +427,7 @@ class StereoNoveltyPipeline(Pipeline):
             res = self.novelty.detect(fr.left, K, M, inputs.vehicle)
         t1, c1 = time.perf_counter(), time.thread_time()
         self._ground = GroundModel.level()
-        if o.ground_fit and o.depth_cue == "off":
+        if (o.ground_fit or o.ground_local) and o.depth_cue == "off":
             self._ground_only(fr, inputs.vehicle)
         extra = self._extra_cues(fr, inputs.vehicle, res, kd)
         t1c, c1c = time.perf_counter(), time.thread_time()
