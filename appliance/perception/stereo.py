@@ -98,6 +98,12 @@ class StereoConfig:
                                 "is seen) to have its disparity, as a surface standing on the "
                                 "ground does (a mismatch blob in the far stubble does not; an "
                                 "overhang does not either). 0 = off")
+    support_known_min: float = _f(0.0, lo=0.0, hi=1.0,
+                                  doc="vertical support (support_min > 0): the share of the "
+                                      "samples below an obstacle point that must have a "
+                                      "disparity at all; fewer: no support (0 = off: unknown "
+                                      "samples say nothing, a mismatch floating above an "
+                                      "unmatched column passes)")
     confidence_px: float = _f(1.0, lo=0.05, hi=16.0,
                               doc="per-point confidence: exp(-(|d - median 3x3 of d| / this)^2) "
                                   "(a disparity that disagrees with its neighbours is unsure)")
@@ -586,12 +592,15 @@ def drop_dark(disp: np.ndarray, left: np.ndarray, level: float, win: int = 7) ->
 
 def vertical_support(disp: np.ndarray, px: np.ndarray, pts: np.ndarray, calib, ground,
                      samples: int = 8, tol_px: float = 1.5, tol_frac: float = 0.08,
-                     vehicle=None, use_attitude: bool = False) -> np.ndarray:
+                     vehicle=None, use_attitude: bool = False,
+                     known_min: float = 0.0) -> np.ndarray:
     """Per obstacle point (pixels ``px`` (N, 2) of ``disp``, vehicle-frame ``pts`` (N, 3)):
     the share of ``samples`` pixels of its column between it and its foot (the image row of
     the ground under it, ``ground`` a GroundModel) whose disparity is within
     ``max(tol_px, tol_frac d)`` of its own. Pixels with no disparity do not count; fewer than
-    two known samples: 1 (nothing says otherwise)."""
+    two known samples: 1 (nothing says otherwise). ``known_min`` > 0: a point whose column
+    below has fewer than this share of the samples with a disparity at all has support 0
+    (a floating mismatch above an unmatched column: nothing says it stands on the ground)."""
     n = len(px)
     if n == 0:
         return np.zeros(0)
@@ -617,7 +626,10 @@ def vertical_support(disp: np.ndarray, px: np.ndarray, pts: np.ndarray, calib, g
     known = ds > 0
     agree = known & (np.abs(ds - d0) <= np.maximum(tol_px, tol_frac * d0))
     nk = known.sum(axis=1)
-    return np.where(nk >= 2, agree.sum(axis=1) / np.maximum(nk, 1), 1.0)
+    sup = np.where(nk >= 2, agree.sum(axis=1) / np.maximum(nk, 1), 1.0)
+    if known_min > 0:
+        sup = np.where(nk >= known_min * samples, sup, 0.0)
+    return sup
 
 
 def point_confidence(disp: np.ndarray, px: np.ndarray, scale_px: float) -> np.ndarray:
@@ -722,7 +734,8 @@ class StereoPipeline(Pipeline):
         if o.support_min > 0 and keep.any():
             idx = np.flatnonzero(keep)
             sup = vertical_support(disp, px[idx], pts[idx], calib, ground,
-                                   vehicle=inputs.vehicle, use_attitude=o.use_attitude)
+                                   vehicle=inputs.vehicle, use_attitude=o.use_attitude,
+                                   known_min=o.support_known_min)
             keep[idx[sup < o.support_min]] = False
         xy = dedupe_cells(pts[keep, :2])
         conf = point_confidence(disp, px[keep], o.confidence_px)

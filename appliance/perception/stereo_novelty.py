@@ -459,7 +459,8 @@ class StereoNoveltyPipeline(Pipeline):
         if o.support_min > 0 and keep.any():
             idx = np.flatnonzero(keep)
             sup = vertical_support(disp, px[idx], pts[idx], calib, ground,
-                                   vehicle=inputs.vehicle, use_attitude=o.use_attitude)
+                                   vehicle=inputs.vehicle, use_attitude=o.use_attitude,
+                                   known_min=o.support_known_min)
             keep[idx[sup < o.support_min]] = False
         xy = dedupe_cells(pts[keep, :2])
         cands = self._candidates(disp, pts[keep], px[keep], h[keep], k / float(kd))
