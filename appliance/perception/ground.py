@@ -228,7 +228,8 @@ class LocalGround:
 def local_ground(pts: np.ndarray, base: GroundModel | None = None, x_min_m: float = 0.0,
                  x_max_m: float = 25.0, y_half_m: float = 10.0, cell_m: float = 0.5,
                  percentile: float = 10.0, min_points: int = 6, erode_cells: int = 1,
-                 max_dev_m: float = 0.5, z_step: float = 0.02) -> LocalGround:
+                 max_dev_m: float = 0.5, z_step: float = 0.02,
+                 max_down_m: float | None = None, min_seen: int = 1) -> LocalGround:
     """The ground under every bin of ``cell_m`` (vehicle frame, x in [x_min, x_max), |y| <
     y_half): the ``percentile`` of the heights above ``base`` of the bin's points (>=
     ``min_points`` of them; a ``z_step`` histogram, no sort), then the MINIMUM of that over the
@@ -236,9 +237,13 @@ def local_ground(pts: np.ndarray, base: GroundModel | None = None, x_min_m: floa
     ground under it: its foot neighbours bins that see the ground (the soil before and beside
     it), and the erosion takes the lowest. A rise of the field lifts every bin on it, so a
     stubble tuft on a rise is measured from the rise. The offsets are clipped to
-    +-``max_dev_m`` around ``base`` (a mismatch blob below the ground, or a wall filling
-    every bin around, cannot move the ground further); bins that saw too few points, and all
-    their neighbours too, keep ``base``."""
+    ``[-max_down_m, +max_dev_m]`` around ``base`` (``max_down_m`` None: ``max_dev_m``; a
+    mismatch blob below the ground, or a wall filling every bin around, cannot move the
+    ground further); a bin whose neighbourhood (itself included) holds fewer than
+    ``min_seen`` bins that saw enough points keeps ``base``: far away only the object's own
+    bins are seen (the ground around it is too sparse at range), and the erosion would have
+    nothing to take the ground from (a pole 15 m ahead lifted its own ground 0.5 m)."""
+    max_down_m = max_dev_m if max_down_m is None else max_down_m
     base = base if base is not None else GroundModel.level()
     p = np.asarray(pts, np.float64).reshape(-1, 3)
     nx = max(1, int(np.ceil((x_max_m - x_min_m) / cell_m)))
@@ -247,7 +252,7 @@ def local_ground(pts: np.ndarray, base: GroundModel | None = None, x_min_m: floa
     if len(p) == 0:
         return LocalGround(base, x_min_m, -y_half_m, cell_m, off, 0)
     r = p[:, 2] - base.z(p[:, 0], p[:, 1])
-    lo, hi = -max_dev_m - 1.0, max_dev_m + 3.0
+    lo, hi = -max_down_m - 1.0, max_dev_m + 3.0
     ix = np.floor((p[:, 0] - x_min_m) / cell_m).astype(np.intp)
     iy = np.floor((p[:, 1] + y_half_m) / cell_m).astype(np.intp)
     ok = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny) & (r > lo) & (r < hi)
@@ -265,12 +270,18 @@ def local_ground(pts: np.ndarray, base: GroundModel | None = None, x_min_m: floa
         k = np.argmax(cum >= need, axis=1)
         env[use] = lo + (k + 0.5) * z_step
     env = env.reshape(nx, ny)
+    nseen = None
     if erode_cells > 0:
         import cv2
-        env = cv2.erode(env, np.ones((2 * erode_cells + 1,) * 2, np.uint8),
-                        borderType=cv2.BORDER_CONSTANT, borderValue=float(np.inf))
+        kern = np.ones((2 * erode_cells + 1,) * 2, np.uint8)
+        if min_seen > 1:
+            nseen = cv2.filter2D(np.isfinite(env).astype(np.float32), -1,
+                                 kern.astype(np.float32), borderType=cv2.BORDER_CONSTANT)
+        env = cv2.erode(env, kern, borderType=cv2.BORDER_CONSTANT, borderValue=float(np.inf))
     seen = np.isfinite(env)
-    off[seen] = np.clip(env[seen], -max_dev_m, max_dev_m)
+    if nseen is not None:
+        seen &= nseen >= min_seen - 0.5
+    off[seen] = np.clip(env[seen], -max_down_m, max_dev_m)
     return LocalGround(base, x_min_m, -y_half_m, cell_m, off, int(len(use)))
 
 

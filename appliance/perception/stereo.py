@@ -78,8 +78,17 @@ class StereoConfig:
     ground_local_erode: int = _f(1, lo=0, hi=5, doc="ground_local: the minimum over the bin "
                                                     "and its neighbours this many bins away")
     ground_local_max_dev_m: float = _f(0.5, lo=0.0, hi=3.0,
-                                       doc="ground_local: at most this far from the level "
+                                       doc="ground_local: at most this far above the level "
                                            "plane or the fit")
+    ground_local_min_bins: int = _f(4, lo=1, hi=121,
+                                    doc="ground_local: a bin's neighbourhood must hold this "
+                                        "many bins that saw the ground, else the base ground "
+                                        "there (far away only an object's own bins are seen)")
+    ground_local_max_down_m: float = _f(0.0, lo=0.0, hi=3.0,
+                                        doc="ground_local: at most this far below it (a "
+                                            "lower ground makes everything on it taller: "
+                                            "mismatches matched too near lie below the "
+                                            "ground and pull the low envelope down)")
     sky_far_m: float = _f(0.0, lo=0.0, hi=200.0,
                           doc="points farther than this and higher above the ground than the "
                               "camera are the sky or the skyline, not obstacles (0 = off)")
@@ -649,21 +658,29 @@ def local_heights(pts: np.ndarray, o, camera_z_m: float, fit_pts: np.ndarray | N
     (default ``pts``) with ``ground_fit``, else above z = 0 (paper); with ``ground_local``
     above the local low envelope of ``fit_pts`` over that (:func:`.ground.local_ground`). With ``sky_far_m`` the
     points it calls sky get height -inf (never in a band)."""
-    from .ground import GroundModel, fit_ground, horizon_far_mask, local_ground
+    from .ground import GroundModel, fit_ground, horizon_far_mask
     src = pts if fit_pts is None else fit_pts
     if getattr(o, "ground_fit", False):
         g = fit_ground(src, x_max_m=min(o.ground_max_range_m, o.max_range_m))
     else:
         g = GroundModel.level()
     if getattr(o, "ground_local", False):
-        g = local_ground(src, g, x_max_m=min(o.ground_max_range_m, o.max_range_m),
-                         cell_m=o.ground_local_cell_m, percentile=o.ground_local_percentile,
-                         erode_cells=o.ground_local_erode, max_dev_m=o.ground_local_max_dev_m)
+        g = local_ground_of(src, o, g)
     h = g.height(pts)
     far = getattr(o, "sky_far_m", 0.0)
     if far > 0 and len(h):
         h[horizon_far_mask(pts, camera_z_m, far, g)] = -np.inf
     return h, g
+
+
+def local_ground_of(pts: np.ndarray, o, base):
+    """``ground_local``: the local ground of points (N, 3) over ``base`` (a GroundModel) with
+    the options' bins (:func:`.ground.local_ground`)."""
+    from .ground import local_ground
+    return local_ground(pts, base, x_max_m=min(o.ground_max_range_m, o.max_range_m),
+                        cell_m=o.ground_local_cell_m, percentile=o.ground_local_percentile,
+                        erode_cells=o.ground_local_erode, max_dev_m=o.ground_local_max_dev_m,
+                        max_down_m=o.ground_local_max_down_m, min_seen=o.ground_local_min_bins)
 
 
 def band_mask(pts: np.ndarray, h: np.ndarray, band_min_m: float, band_max_m: float,
