@@ -139,9 +139,6 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
     dark_level: float = _f(8.0, lo=0.0, hi=255.0, doc="no disparity where the 7x7 mean grey "
                                                       "level is below this (before issue #14: "
                                                       "0 = off)")
-    ground_local: bool = _f(True, doc="height above the local ground (see "
-                                      "[perception.stereo]; measured in docs/front-end.md "
-                                      "\"The local ground\"; before: false, the level plane)")
     model_state: str = _f("auto", doc="where the novelty model persists across restarts: "
                                       "auto = $STATE_DIRECTORY/novelty-<pipeline>.npz when "
                                       "the service has a state directory (systemd), off = "
@@ -162,7 +159,7 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
 # Figure-5 / reproduction tables of docs/stereo-novelty.md: tools/experiments_stereo.py pins
 # them in its rows)
 PRE_ISSUE_14 = {"boot_guard": False, "pad_left": False, "support_min": 0.0, "uniqueness": 10,
-                "dark_level": 0.0, "ground_local": False}
+                "dark_level": 0.0}
 
 
 def rescale_mask(mask: np.ndarray, f: int, k: int, out_hw: tuple[int, int]) -> np.ndarray:
