@@ -124,3 +124,52 @@ def test_new_front_end_options_are_validated():
             parse_config({"perception": {"pipelines": ["stereo-novelty"],
                                          "stereo-novelty": bad}})
         assert next(iter(bad)) in str(e.value)
+
+
+def test_new_ground_and_support_options_are_validated():
+    from appliance.config import parse_config, pipeline_options
+    from hal.errors import ConfigError
+    cfg = parse_config({"perception": {"pipelines": ["stereo-novelty"], "stereo-novelty": {
+        "ground_local": True, "ground_local_cell_m": 1.0, "ground_local_percentile": 20,
+        "ground_local_erode": 2, "ground_local_max_dev_m": 0.4, "support_known_min": 0.5}}})
+    o = pipeline_options(cfg, "stereo-novelty")
+    assert (o.ground_local, o.ground_local_cell_m, o.ground_local_percentile,
+            o.ground_local_erode, o.ground_local_max_dev_m, o.support_known_min) == \
+        (True, 1.0, 20, 2, 0.4, 0.5)
+    for bad in ({"ground_local_cell_m": 0.0}, {"ground_local_percentile": 80},
+                {"ground_local_erode": -1}, {"support_known_min": 1.5}):
+        with pytest.raises(ConfigError) as e:
+            parse_config({"perception": {"pipelines": ["stereo-novelty"],
+                                         "stereo-novelty": bad}})
+        assert next(iter(bad)) in str(e.value)
+
+
+def _support_setup():
+    """A level camera 1.5 m up (640x512, f 400, baseline 0.2 m) and a disparity image: a
+    standing surface 4 m ahead (rows 150-330, down to its foot) and a floating blob of the
+    same disparity (rows 150-170) above a column with no disparity at all, as a mismatch on
+    a strobe-lit tuft top far away whose column below was never matched."""
+    from appliance.perception.ground import GroundModel
+    from hal.types import Mount, PinholeCalibration, StereoCalibration
+    cal = StereoCalibration(PinholeCalibration(640, 512, 400.0, 400.0, 320.0, 256.0), 0.2,
+                            Mount(x_m=0.0, z_m=1.5))
+    d = 400.0 * 0.2 / 4.0                                       # 20 px at 4 m
+    disp = np.zeros((512, 640), np.float32)
+    foot = int(256 + 400.0 * 1.5 / 4.0) + 2                     # the ground row 4 m ahead
+    disp[150:foot, 100:140] = d                                 # a surface standing there
+    disp[150:170, 400:440] = d                                  # floating
+    px = np.array([[120.0, 160.0], [420.0, 160.0]])
+    z = 4.0
+    pts = np.array([[z, -(u - 320.0) * z / 400.0, 1.5 - (160.0 - 256.0) * z / 400.0]
+                    for u in (120.0, 420.0)])
+    return disp, px, pts, cal, GroundModel.level()
+
+
+def test_support_known_min_drops_a_floating_match_over_an_unmatched_column():
+    from appliance.perception.stereo import vertical_support
+    disp, px, pts, cal, g = _support_setup()
+    # default: unknown samples say nothing, both points pass
+    assert list(vertical_support(disp, px, pts, cal, g)) == [1.0, 1.0]
+    sup = vertical_support(disp, px, pts, cal, g, known_min=0.5)
+    assert sup[0] == 1.0           # the standing surface keeps its support
+    assert sup[1] == 0.0           # the floating match has none

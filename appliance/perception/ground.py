@@ -182,8 +182,111 @@ def fit_ground(pts: np.ndarray, x_min_m: float = 2.0, x_max_m: float = 25.0,
     return model
 
 
+class LocalGround:
+    """A ground that follows the field bin by bin: ``base`` (the fitted surface or the level
+    plane) plus a per-bin offset, the low envelope of the points' heights above ``base``
+    eroded over the bin's neighbours (see :func:`local_ground`). Same interface as
+    :class:`GroundModel` (``z``, ``height``, ``pitch_deg``, ``to_dict``, ``source``)."""
+
+    source = "local"
+
+    def __init__(self, base: GroundModel, x0: float, y0: float, cell_m: float,
+                 offset: np.ndarray, bins: int):
+        self.base, self.x0, self.y0, self.cell_m = base, float(x0), float(y0), float(cell_m)
+        self.offset = offset               # (nx, ny) float64, 0 where nothing was seen
+        self.bins = int(bins)
+        self.x_max_m = base.x_max_m
+
+    def z(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        x = np.asarray(x, np.float64)
+        y = np.asarray(y, np.float64)
+        z = self.base.z(x, y)
+        nx, ny = self.offset.shape
+        ix = np.floor((x - self.x0) / self.cell_m).astype(np.intp)
+        iy = np.floor((y - self.y0) / self.cell_m).astype(np.intp)
+        inside = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
+        off = np.zeros(np.shape(x))
+        off[inside] = self.offset[ix[inside], iy[inside]]
+        return z + off
+
+    def height(self, pts: np.ndarray) -> np.ndarray:
+        p = np.asarray(pts).reshape(-1, 3)
+        return p[:, 2] - self.z(p[:, 0], p[:, 1])
+
+    def pitch_deg(self) -> float:
+        return self.base.pitch_deg()
+
+    def to_dict(self) -> dict:
+        d = self.base.to_dict()
+        off = self.offset[self.offset != 0]
+        d.update({"source": "local", "base": self.base.source, "local_bins": self.bins,
+                  "local_offset_m": [round(float(off.min()), 3), round(float(off.max()), 3)]
+                  if len(off) else [0.0, 0.0]})
+        return d
+
+
+def local_ground(pts: np.ndarray, base: GroundModel | None = None, x_min_m: float = 0.0,
+                 x_max_m: float = 25.0, y_half_m: float = 10.0, cell_m: float = 0.5,
+                 percentile: float = 10.0, min_points: int = 6, erode_cells: int = 1,
+                 max_dev_m: float = 0.5, z_step: float = 0.02,
+                 max_down_m: float | None = None, min_seen: int = 1) -> LocalGround:
+    """The ground under every bin of ``cell_m`` (vehicle frame, x in [x_min, x_max), |y| <
+    y_half): the ``percentile`` of the heights above ``base`` of the bin's points (>=
+    ``min_points`` of them; a ``z_step`` histogram, no sort), then the MINIMUM of that over the
+    bin and its neighbours within ``erode_cells`` (an erosion). An object cannot lift the
+    ground under it: its foot neighbours bins that see the ground (the soil before and beside
+    it), and the erosion takes the lowest. A rise of the field lifts every bin on it, so a
+    stubble tuft on a rise is measured from the rise. The offsets are clipped to
+    ``[-max_down_m, +max_dev_m]`` around ``base`` (``max_down_m`` None: ``max_dev_m``; a
+    mismatch blob below the ground, or a wall filling every bin around, cannot move the
+    ground further); a bin whose neighbourhood (itself included) holds fewer than
+    ``min_seen`` bins that saw enough points keeps ``base``: far away only the object's own
+    bins are seen (the ground around it is too sparse at range), and the erosion would have
+    nothing to take the ground from (a pole 15 m ahead lifted its own ground 0.5 m)."""
+    max_down_m = max_dev_m if max_down_m is None else max_down_m
+    base = base if base is not None else GroundModel.level()
+    p = np.asarray(pts, np.float64).reshape(-1, 3)
+    nx = max(1, int(np.ceil((x_max_m - x_min_m) / cell_m)))
+    ny = max(1, int(np.ceil(2 * y_half_m / cell_m)))
+    off = np.zeros((nx, ny))
+    if len(p) == 0:
+        return LocalGround(base, x_min_m, -y_half_m, cell_m, off, 0)
+    r = p[:, 2] - base.z(p[:, 0], p[:, 1])
+    lo, hi = -max_down_m - 1.0, max_dev_m + 3.0
+    ix = np.floor((p[:, 0] - x_min_m) / cell_m).astype(np.intp)
+    iy = np.floor((p[:, 1] + y_half_m) / cell_m).astype(np.intp)
+    ok = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny) & (r > lo) & (r < hi)
+    ix, iy, r = ix[ok], iy[ok], r[ok]
+    nz = int(np.ceil((hi - lo) / z_step))
+    iz = np.minimum(((r - lo) / z_step).astype(np.intp), nz - 1)
+    b = ix * ny + iy
+    counts = np.bincount(b, minlength=nx * ny)
+    use = np.flatnonzero(counts >= min_points)
+    env = np.full(nx * ny, np.inf, np.float32)
+    if len(use):
+        hist = np.bincount(b * nz + iz, minlength=nx * ny * nz).reshape(nx * ny, nz)[use]
+        cum = np.cumsum(hist, axis=1)
+        need = np.maximum(1, np.ceil(counts[use] * percentile / 100.0))[:, None]
+        k = np.argmax(cum >= need, axis=1)
+        env[use] = lo + (k + 0.5) * z_step
+    env = env.reshape(nx, ny)
+    nseen = None
+    if erode_cells > 0:
+        import cv2
+        kern = np.ones((2 * erode_cells + 1,) * 2, np.uint8)
+        if min_seen > 1:
+            nseen = cv2.filter2D(np.isfinite(env).astype(np.float32), -1,
+                                 kern.astype(np.float32), borderType=cv2.BORDER_CONSTANT)
+        env = cv2.erode(env, kern, borderType=cv2.BORDER_CONSTANT, borderValue=float(np.inf))
+    seen = np.isfinite(env)
+    if nseen is not None:
+        seen &= nseen >= min_seen - 0.5
+    off[seen] = np.clip(env[seen], -max_down_m, max_dev_m)
+    return LocalGround(base, x_min_m, -y_half_m, cell_m, off, int(len(use)))
+
+
 def horizon_far_mask(pts: np.ndarray, camera_z_m: float, far_m: float,
-                     ground: GroundModel | None = None) -> np.ndarray:
+                     ground=None) -> np.ndarray:
     """True for points (N, 3) farther ahead than ``far_m`` and higher above the ground than
     the camera: the sky and the far skyline (see the module's docstring)."""
     p = np.asarray(pts).reshape(-1, 3)

@@ -65,6 +65,30 @@ class StereoConfig:
                                      "above the level plane z = 0 (paper)")
     ground_max_range_m: float = _f(25.0, lo=3.0, hi=200.0,
                                    doc="ground_fit: points up to this far ahead carry the fit")
+    ground_local: bool = _f(False, doc="height above the LOCAL ground: per ground_local_cell_m "
+                                        "bin, the low envelope (ground_local_percentile) of "
+                                        "the points' heights above the ground (level, or the "
+                                        "fit with ground_fit), eroded over the neighbouring "
+                                        "bins so an object cannot lift the ground under it "
+                                        "(perception/ground.py local_ground). A stubble tuft "
+                                        "on a rise is measured from the rise")
+    ground_local_cell_m: float = _f(0.5, lo=0.1, hi=5.0, doc="ground_local: bin size (m)")
+    ground_local_percentile: float = _f(10.0, lo=0.0, hi=50.0,
+                                        doc="ground_local: the bin's low percentile")
+    ground_local_erode: int = _f(1, lo=0, hi=5, doc="ground_local: the minimum over the bin "
+                                                    "and its neighbours this many bins away")
+    ground_local_max_dev_m: float = _f(0.5, lo=0.0, hi=3.0,
+                                       doc="ground_local: at most this far above the level "
+                                           "plane or the fit")
+    ground_local_min_bins: int = _f(4, lo=1, hi=121,
+                                    doc="ground_local: a bin's neighbourhood must hold this "
+                                        "many bins that saw the ground, else the base ground "
+                                        "there (far away only an object's own bins are seen)")
+    ground_local_max_down_m: float = _f(0.0, lo=0.0, hi=3.0,
+                                        doc="ground_local: at most this far below it (a "
+                                            "lower ground makes everything on it taller: "
+                                            "mismatches matched too near lie below the "
+                                            "ground and pull the low envelope down)")
     sky_far_m: float = _f(0.0, lo=0.0, hi=200.0,
                           doc="points farther than this and higher above the ground than the "
                               "camera are the sky or the skyline, not obstacles (0 = off)")
@@ -83,6 +107,12 @@ class StereoConfig:
                                 "is seen) to have its disparity, as a surface standing on the "
                                 "ground does (a mismatch blob in the far stubble does not; an "
                                 "overhang does not either). 0 = off")
+    support_known_min: float = _f(0.0, lo=0.0, hi=1.0,
+                                  doc="vertical support (support_min > 0): the share of the "
+                                      "samples below an obstacle point that must have a "
+                                      "disparity at all; fewer: no support (0 = off: unknown "
+                                      "samples say nothing, a mismatch floating above an "
+                                      "unmatched column passes)")
     confidence_px: float = _f(1.0, lo=0.05, hi=16.0,
                               doc="per-point confidence: exp(-(|d - median 3x3 of d| / this)^2) "
                                   "(a disparity that disagrees with its neighbours is unsure)")
@@ -571,12 +601,15 @@ def drop_dark(disp: np.ndarray, left: np.ndarray, level: float, win: int = 7) ->
 
 def vertical_support(disp: np.ndarray, px: np.ndarray, pts: np.ndarray, calib, ground,
                      samples: int = 8, tol_px: float = 1.5, tol_frac: float = 0.08,
-                     vehicle=None, use_attitude: bool = False) -> np.ndarray:
+                     vehicle=None, use_attitude: bool = False,
+                     known_min: float = 0.0) -> np.ndarray:
     """Per obstacle point (pixels ``px`` (N, 2) of ``disp``, vehicle-frame ``pts`` (N, 3)):
     the share of ``samples`` pixels of its column between it and its foot (the image row of
     the ground under it, ``ground`` a GroundModel) whose disparity is within
     ``max(tol_px, tol_frac d)`` of its own. Pixels with no disparity do not count; fewer than
-    two known samples: 1 (nothing says otherwise)."""
+    two known samples: 1 (nothing says otherwise). ``known_min`` > 0: a point whose column
+    below has fewer than this share of the samples with a disparity at all has support 0
+    (a floating mismatch above an unmatched column: nothing says it stands on the ground)."""
     n = len(px)
     if n == 0:
         return np.zeros(0)
@@ -602,7 +635,10 @@ def vertical_support(disp: np.ndarray, px: np.ndarray, pts: np.ndarray, calib, g
     known = ds > 0
     agree = known & (np.abs(ds - d0) <= np.maximum(tol_px, tol_frac * d0))
     nk = known.sum(axis=1)
-    return np.where(nk >= 2, agree.sum(axis=1) / np.maximum(nk, 1), 1.0)
+    sup = np.where(nk >= 2, agree.sum(axis=1) / np.maximum(nk, 1), 1.0)
+    if known_min > 0:
+        sup = np.where(nk >= known_min * samples, sup, 0.0)
+    return sup
 
 
 def point_confidence(disp: np.ndarray, px: np.ndarray, scale_px: float) -> np.ndarray:
@@ -619,19 +655,32 @@ def point_confidence(disp: np.ndarray, px: np.ndarray, scale_px: float) -> np.nd
 
 def local_heights(pts: np.ndarray, o, camera_z_m: float, fit_pts: np.ndarray | None = None):
     """(heights (N,), ground model) of points (N, 3): above the ground fitted to ``fit_pts``
-    (default ``pts``) with ``ground_fit``, else above z = 0 (paper). With ``sky_far_m`` the
+    (default ``pts``) with ``ground_fit``, else above z = 0 (paper); with ``ground_local``
+    above the local low envelope of ``fit_pts`` over that (:func:`.ground.local_ground`). With ``sky_far_m`` the
     points it calls sky get height -inf (never in a band)."""
     from .ground import GroundModel, fit_ground, horizon_far_mask
+    src = pts if fit_pts is None else fit_pts
     if getattr(o, "ground_fit", False):
-        src = pts if fit_pts is None else fit_pts
         g = fit_ground(src, x_max_m=min(o.ground_max_range_m, o.max_range_m))
     else:
         g = GroundModel.level()
+    if getattr(o, "ground_local", False):
+        g = local_ground_of(src, o, g)
     h = g.height(pts)
     far = getattr(o, "sky_far_m", 0.0)
     if far > 0 and len(h):
         h[horizon_far_mask(pts, camera_z_m, far, g)] = -np.inf
     return h, g
+
+
+def local_ground_of(pts: np.ndarray, o, base):
+    """``ground_local``: the local ground of points (N, 3) over ``base`` (a GroundModel) with
+    the options' bins (:func:`.ground.local_ground`)."""
+    from .ground import local_ground
+    return local_ground(pts, base, x_max_m=min(o.ground_max_range_m, o.max_range_m),
+                        cell_m=o.ground_local_cell_m, percentile=o.ground_local_percentile,
+                        erode_cells=o.ground_local_erode, max_dev_m=o.ground_local_max_dev_m,
+                        max_down_m=o.ground_local_max_down_m, min_seen=o.ground_local_min_bins)
 
 
 def band_mask(pts: np.ndarray, h: np.ndarray, band_min_m: float, band_max_m: float,
@@ -702,7 +751,8 @@ class StereoPipeline(Pipeline):
         if o.support_min > 0 and keep.any():
             idx = np.flatnonzero(keep)
             sup = vertical_support(disp, px[idx], pts[idx], calib, ground,
-                                   vehicle=inputs.vehicle, use_attitude=o.use_attitude)
+                                   vehicle=inputs.vehicle, use_attitude=o.use_attitude,
+                                   known_min=o.support_known_min)
             keep[idx[sup < o.support_min]] = False
         xy = dedupe_cells(pts[keep, :2])
         conf = point_confidence(disp, px[keep], o.confidence_px)

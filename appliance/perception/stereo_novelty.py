@@ -27,7 +27,7 @@ from .novelty import NoveltyDetector, dilate_cells, mask_to_camera, obstacle_cel
 from .stereo import (StereoConfig, StereoPipeline, band_mask, check_matcher, dedupe_cells, drop_dark,
                      disparity_regions, downscale, local_heights, make_matcher, mask_boxes,
                      match_factor, merge_strips, point_confidence, points_from_disparity,
-                     scaled_calibration, strip_boxes, vertical_support)
+                     scaled_calibration, strip_boxes, vertical_support, local_ground_of)
 
 # the paper gives the 32x32 cells, the 40-frame update and the 3-sigma search; the other
 # defaults were chosen on a tuning run (stubble-empty, seed 1), see docs/stereo-novelty.md
@@ -114,6 +114,13 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
     near_margin: float = _f(1.15, lo=1.0, hi=4.0,
                             doc="near_from_foot: the coarse disparity seen is scaled by this "
                                 "(coarse depth is rough) before it bounds the search")
+    ground_local_cue: bool = _f(False, doc="ground_local: the depth cue's coarse points too "
+                                           "are judged above the local ground (false: above "
+                                           "the level plane or the fit; the dense points "
+                                           "always above the local ground)")
+    ground_local_dense: bool = _f(True, doc="ground_local: the frame's dense points carry the "
+                                             "local ground too (with the depth cue's coarse "
+                                             "points); false: the coarse points alone")
     boot_guard: bool = _f(True, doc="beyond the paper (issue #14): until the novelty model's "
                                      "first update, every frame also gets full-frame dense "
                                      "stereo; what stands above the ground there (candidates of "
@@ -306,6 +313,16 @@ class StereoNoveltyPipeline(Pipeline):
         fitted to them here (every other height of the frame is taken above it)."""
         o: StereoNoveltyConfig = self.options
         h, self._ground = local_heights(pts, o, calib.mount.z_m)
+        if o.ground_local:
+            self._coarse_pts = pts
+        if o.ground_local and not o.ground_local_cue:
+            # the depth cue only chooses what is matched densely: it raises cells by the
+            # heights above the base ground (level or fit); the local ground judges the dense
+            # points
+            h = self._ground.base.height(pts)
+            if o.sky_far_m > 0 and len(h):
+                h[horizon_far_mask(pts, calib.mount.z_m, o.sky_far_m, self._ground.base)] = \
+                    -np.inf
         return h
 
     def _coarse_pass(self, fr, vehicle, matcher: str):
@@ -331,7 +348,8 @@ class StereoNoveltyPipeline(Pipeline):
         return disp, kc, calib, pts, px
 
     def _ground_only(self, fr, vehicle) -> None:
-        """``ground_fit`` without the depth cue: the coarse pass for the ground alone."""
+        """``ground_fit`` / ``ground_local`` without the depth cue: the coarse pass for the
+        ground alone."""
         _, _, calib, pts, _ = self._coarse_pass(fr, vehicle, "bm")
         self._coarse_heights(pts, calib)
 
@@ -426,7 +444,8 @@ class StereoNoveltyPipeline(Pipeline):
             res = self.novelty.detect(fr.left, K, M, inputs.vehicle)
         t1, c1 = time.perf_counter(), time.thread_time()
         self._ground = GroundModel.level()
-        if o.ground_fit and o.depth_cue == "off":
+        self._coarse_pts = None
+        if (o.ground_fit or o.ground_local) and o.depth_cue == "off":
             self._ground_only(fr, inputs.vehicle)
         extra = self._extra_cues(fr, inputs.vehicle, res, kd)
         t1c, c1c = time.perf_counter(), time.thread_time()
@@ -451,6 +470,11 @@ class StereoNoveltyPipeline(Pipeline):
         pts, px = points_from_disparity(disp, calib, sel, max(1, o.point_stride // k),
                                         inputs.vehicle, o.use_attitude)
         ground = self._ground
+        if o.ground_local and o.ground_local_dense and len(pts):
+            # the dense points see the ground around what was matched (the coarse pass is
+            # sparse on far stubble: 15 m ahead only an object's own bins had coarse points)
+            src = pts if self._coarse_pts is None else np.concatenate([self._coarse_pts, pts])
+            ground = self._ground = local_ground_of(src, o, getattr(ground, "base", ground))
         h = ground.height(pts)
         if o.sky_far_m > 0 and len(h):
             h[horizon_far_mask(pts, calib.mount.z_m, o.sky_far_m, ground)] = -np.inf
@@ -458,7 +482,8 @@ class StereoNoveltyPipeline(Pipeline):
         if o.support_min > 0 and keep.any():
             idx = np.flatnonzero(keep)
             sup = vertical_support(disp, px[idx], pts[idx], calib, ground,
-                                   vehicle=inputs.vehicle, use_attitude=o.use_attitude)
+                                   vehicle=inputs.vehicle, use_attitude=o.use_attitude,
+                                   known_min=o.support_known_min)
             keep[idx[sup < o.support_min]] = False
         xy = dedupe_cells(pts[keep, :2])
         cands = self._candidates(disp, pts[keep], px[keep], h[keep], k / float(kd))
