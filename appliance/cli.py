@@ -305,7 +305,9 @@ def cmd_sim(a) -> int:
 
 
 def cmd_eval(a) -> int:
-    if len(a.run) > 1 or a.workers is not None or a.address:
+    # one run with --out writes its decisions here whatever --workers says (one run is one
+    # task: there is nothing to spread); many runs, or --address, go to Ray
+    if len(a.run) > 1 or a.address or (a.workers is not None and not getattr(a, "out", None)):
         from appliance.campaign_eval import cmd_eval_many    # many runs, on Ray
         return cmd_eval_many(a)
     a.run = a.run[0]

@@ -148,6 +148,21 @@ def test_out_with_tracks_lists_objects(tmp_path):
                                                   summary["missed_stop_frames"])
 
 
+def test_out_with_workers_for_one_run_writes_the_decisions(tmp_path):
+    """`eval RUN --workers 1 --out F` (a script that always passes --workers) said "give one
+    RUN with --out" although it gave one run; many runs with --out still say so."""
+    run = make_run(tmp_path)
+    out = tmp_path / "d.jsonl"
+    p = eval_cli(str(run), "--pipeline", "laser", "--config", str(tmp_path / "box.toml"),
+                 "--workers", "1", "--out", str(out), "--json")
+    assert p.returncode == 0, p.stderr
+    assert len(out.read_text().splitlines()) == N
+    assert json.loads(p.stdout)["false_stop_frames"] == 19
+    p = eval_cli(str(run), str(run), "--pipeline", "laser", "--workers", "1", "--out", str(out))
+    assert p.returncode == 2 and "give one RUN with --out" in p.stderr
+    assert "Traceback" not in p.stderr
+
+
 def test_out_into_a_missing_folder_is_a_clear_error(tmp_path):
     run = make_run(tmp_path)
     p = eval_cli(str(run), "--pipeline", "laser", "--out", str(tmp_path / "no" / "d.jsonl"))
