@@ -136,6 +136,12 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
     support_min: float = _f(0.5, lo=0.0, hi=1.0, doc="vertical support of obstacle points "
                                                      "(see [perception.stereo]; before issue "
                                                      "#14: 0 = off)")
+    support_known_min: float = _f(0.5, lo=0.0, hi=1.0,
+                                  doc="vertical support: the share of the samples below an "
+                                      "obstacle point that must have a disparity at all (see "
+                                      "[perception.stereo]; a mismatch floating over an "
+                                      "unmatched column, the false stops' signature, has none; "
+                                      "before the false-stop work: 0 = off)")
     dark_level: float = _f(8.0, lo=0.0, hi=255.0, doc="no disparity where the 7x7 mean grey "
                                                       "level is below this (before issue #14: "
                                                       "0 = off)")
@@ -159,7 +165,7 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
 # Figure-5 / reproduction tables of docs/stereo-novelty.md: tools/experiments_stereo.py pins
 # them in its rows)
 PRE_ISSUE_14 = {"boot_guard": False, "pad_left": False, "support_min": 0.0, "uniqueness": 10,
-                "dark_level": 0.0}
+                "dark_level": 0.0, "support_known_min": 0.0}
 
 
 def rescale_mask(mask: np.ndarray, f: int, k: int, out_hw: tuple[int, int]) -> np.ndarray:
