@@ -153,8 +153,8 @@ class DecisionCore:
             conf = None
             if g.stop_at > g.occupied_at:    # a STOP needs a cell seen in more cycles running
                 conf = self.grid.evidence_at(grid_cells) >= g.stop_at - 1e-6
-            pic = Picture(grid_cells, assess(grid_cells, speed, self.cfg.zones, conf), speed,
-                          grid_cells)
+            pic = Picture(grid_cells, assess(grid_cells, speed, self.cfg.zones, conf,
+                                             cell_m=g.cell_m), speed, grid_cells)
         else:
             occ = self.grid.occupied_mask() if self.cfg.tracking.input == "occupied" else None
             z = self.cfg.zones

@@ -79,10 +79,13 @@ def sectors(cells_xy: np.ndarray, n: int = 72, fov_deg: float = 180.0,
 
 
 def assess(cells_xy: np.ndarray, speed_mps: float, z: ZonesConfig,
-           confirmed: np.ndarray | None = None) -> ZoneVerdict:
+           confirmed: np.ndarray | None = None, cell_m: float = 0.0) -> ZoneVerdict:
     """The zone verdict on occupied cells. ``confirmed`` (one flag per cell, or None: all):
     only a confirmed cell in the stop zone makes a STOP; an unconfirmed one there is a SLOW
-    (``[grid] stop_at``: a cell seen in too few cycles running to stop for)."""
+    (``[grid] stop_at``: a cell seen in too few cycles running to stop for). ``cell_m``: the
+    cells' size; a cell is in a zone when any part of it is (its centre may be up to half a
+    cell beyond the zone's far end or side while what hit it is inside), so what the grid
+    holds 4 cm beyond the stop zone's end is a STOP, not a SLOW one cycle too long."""
     cells = np.asarray(cells_xy, dtype=np.float64).reshape(-1, 2)
     if confirmed is not None:
         keep = kept_mask(cells, z)
@@ -92,13 +95,14 @@ def assess(cells_xy: np.ndarray, speed_mps: float, z: ZonesConfig,
         conf = np.ones(len(cells), bool)
     stop_len = stop_length(speed_mps, z)
     slow_len = stop_len + z.slow_extra_m
+    h = 0.5 * cell_m
     ahead = cells[:, 0] - z.front_x_m if len(cells) else np.zeros(0)
-    in_path = np.abs(cells[:, 1]) <= z.half_width_m if len(cells) else np.zeros(0, bool)
+    in_path = np.abs(cells[:, 1]) - h <= z.half_width_m if len(cells) else np.zeros(0, bool)
     fwd = in_path & (ahead >= 0)
-    stop_cells = fwd & (ahead <= stop_len)
+    stop_cells = fwd & (ahead - h <= stop_len)
     in_stop = int(np.count_nonzero(stop_cells & conf))
     waiting = int(np.count_nonzero(stop_cells & ~conf))
-    in_slow = int(np.count_nonzero(fwd & (ahead > stop_len) & (ahead <= slow_len))) + waiting
+    in_slow = int(np.count_nonzero(fwd & ~stop_cells & (ahead - h <= slow_len))) + waiting
     nearest = float(ahead[fwd].min()) if np.any(fwd) else None
     slow_reason = None
     if waiting and not in_stop:

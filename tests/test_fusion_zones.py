@@ -63,6 +63,23 @@ def test_assess_zones_and_exclusion():
     assert v2.in_stop == 0 and v2.in_slow == 1
 
 
+def test_a_cell_is_in_a_zone_when_any_part_of_it_is():
+    """A 0.1 m cell centred 4 cm beyond the stop zone's end holds a hit that may be inside it
+    (stubble-night 4 frame 27: the person's footprint met the stop zone by 2 cm, its nearest
+    cell's centre was 4 cm beyond; the box slowed instead of stopping for one cycle)."""
+    z = ZonesConfig(front_x_m=2.6, half_width_m=1.25, min_stop_m=2.0, margin_m=0.0,
+                    slow_extra_m=5.0)                       # at standstill: stop zone 2.6-4.6
+    beyond = np.array([[4.64, 0.0]])
+    assert assess(beyond, 0.0, z).in_stop == 0              # the centre test (cell_m 0)
+    v = assess(beyond, 0.0, z, cell_m=0.1)
+    assert (v.in_stop, v.in_slow) == (1, 0)
+    assert assess(np.array([[4.66, 0.0]]), 0.0, z, cell_m=0.1).in_stop == 0   # wholly beyond
+    side = np.array([[3.5, 1.29]])                          # half a cell over the side edge
+    assert assess(side, 0.0, z).in_stop == 0 and assess(side, 0.0, z, cell_m=0.1).in_stop == 1
+    far = np.array([[9.64, 0.0]])                           # the slow zone ends at 9.6
+    assert assess(far, 0.0, z).in_slow == 0 and assess(far, 0.0, z, cell_m=0.1).in_slow == 1
+
+
 def test_sectors_body_frd():
     sec = sectors(np.array([[5.0, -1.0], [3.0, 0.01]]), n=72, fov_deg=180)
     assert len(sec) == 72
