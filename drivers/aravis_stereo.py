@@ -74,6 +74,24 @@ def to_bgr(data: bytes | memoryview, width: int, height: int, pixel_format: str)
     return cv2.cvtColor(raw, code)
 
 
+
+# Aravis stamps a buffer's arrival with the wall clock (g_get_real_time); the age of a frame is
+# the wall clock now minus that stamp. A wall-clock step between the two (NTP, GPS time, an
+# operator) makes the age meaningless: +400 days read a fresh frame as 400 days old (a STOP
+# "stereo: stale", found by the soak's clock steps), and a step back would read an old one as
+# new. Such a frame is dropped (the next one is stamped on the stepped clock); an age beyond
+# this is not a frame's wait in the driver's queue.
+MAX_FRAME_AGE_NS = 5_000_000_000
+
+
+def frame_age_ns(wall_now_ns: int, stamp_ns: int) -> int | None:
+    """The age of a frame stamped ``stamp_ns`` on the wall clock, or None when the wall clock
+    must have stepped since (a negative age, or more than MAX_FRAME_AGE_NS)."""
+    age = wall_now_ns - stamp_ns
+    if age < -1_000_000 or age > MAX_FRAME_AGE_NS:     # 1 ms of clock slew is no step
+        return None
+    return max(0, age)
+
 class FramePairer:
     """Pairs (stamp_ns, item) from two streams whose stamps agree within ``tolerance_ns``.
     Frames that can no longer find a partner are dropped and counted in ``unmatched``."""
@@ -372,7 +390,10 @@ class AravisStereoCamera(Reconnecting, StereoCamera):
             data = buf.get_data()
             w, h = buf.get_image_width(), buf.get_image_height()
             # host arrival time -> the loop's clock
-            age_ns = max(0, time.time_ns() - sys_ns)
+            age_ns = frame_age_ns(time.time_ns(), sys_ns)
+            if age_ns is None:                 # the wall clock stepped since Aravis stamped it
+                self._count("frames_dropped_clock_step")
+                return
             loop_ns = self.clock.now_ns() - age_ns
             key = sys_ns if self.pair_by == "system" else dev_ns
             img = to_bgr(bytes(data), w, h, c.pixel_format)

@@ -273,3 +273,17 @@ def _child(cal_path: str) -> int:
 
 if __name__ == "__main__" and len(sys.argv) > 2 and sys.argv[1] == "--child":
     sys.exit(_child(sys.argv[2]))
+
+
+def test_a_wall_clock_step_between_arrival_and_take_drops_the_frame_not_stamps_it_old():
+    """Aravis stamps a buffer's arrival on the wall clock. The hour-long soak stepped the wall
+    clock +400 days between a buffer's arrival and the driver taking it: the frame was read as
+    34 560 000 s old and the box stopped for 'stereo: stale'. A step either way now drops that
+    one frame; an ordinary age (a few ms in the queue) is kept."""
+    from drivers.aravis_stereo import MAX_FRAME_AGE_NS, frame_age_ns
+    t = 1_800_000_000 * 10**9
+    assert frame_age_ns(t + 7_000_000, t) == 7_000_000
+    assert frame_age_ns(t, t + 500_000) == 0                  # sub-ms slew: no step
+    assert frame_age_ns(t + 400 * 86400 * 10**9, t) is None   # stepped forwards
+    assert frame_age_ns(t - 3600 * 10**9, t) is None          # stepped back
+    assert frame_age_ns(t + MAX_FRAME_AGE_NS + 1, t) is None
