@@ -908,9 +908,10 @@ class Soak:
                     s0 = state_at(hb, w0)
                     fc += int(s0 is None or s0[1] != MAV_STOP)
                     fc += sum(1 for x in hb if w0 < x[0] <= w1 and x[1] != MAV_STOP)
-                    c0 = state_at(can, w0)
+                    # the CAN frame of the cycle at w0 arrives up to SAME_CYCLE_S after it
+                    c0 = state_at(can, w0 + SAME_CYCLE_S)
                     fc += int(c0 is not None and not c0[1])
-                    fc += sum(1 for x in can if w0 < x[0] <= w1 and not x[1])
+                    fc += sum(1 for x in can if w0 + SAME_CYCLE_S < x[0] <= w1 and not x[1])
                 g["false_clears"] = fc
                 false_clears += fc
                 if ts is None:
