@@ -658,7 +658,7 @@ def local_heights(pts: np.ndarray, o, camera_z_m: float, fit_pts: np.ndarray | N
     (default ``pts``) with ``ground_fit``, else above z = 0 (paper); with ``ground_local``
     above the local low envelope of ``fit_pts`` over that (:func:`.ground.local_ground`). With ``sky_far_m`` the
     points it calls sky get height -inf (never in a band)."""
-    from .ground import GroundModel, fit_ground, horizon_far_mask
+    from .ground import GroundModel, fit_ground
     src = pts if fit_pts is None else fit_pts
     if getattr(o, "ground_fit", False):
         g = fit_ground(src, x_max_m=min(o.ground_max_range_m, o.max_range_m))
@@ -666,11 +666,18 @@ def local_heights(pts: np.ndarray, o, camera_z_m: float, fit_pts: np.ndarray | N
         g = GroundModel.level()
     if getattr(o, "ground_local", False):
         g = local_ground_of(src, o, g)
+    return heights_above(g, pts, o, camera_z_m), g
+
+
+def heights_above(g, pts: np.ndarray, o, camera_z_m: float) -> np.ndarray:
+    """Heights of points (N, 3) above the ground model ``g``; with ``sky_far_m`` the points it
+    calls sky or the far skyline get -inf (never in a band)."""
+    from .ground import horizon_far_mask
     h = g.height(pts)
     far = getattr(o, "sky_far_m", 0.0)
     if far > 0 and len(h):
         h[horizon_far_mask(pts, camera_z_m, far, g)] = -np.inf
-    return h, g
+    return h
 
 
 def local_ground_of(pts: np.ndarray, o, base):

@@ -22,12 +22,13 @@ from appliance.schema import _f
 from .base import Detections, Pipeline, SensorInputs
 from .cue import CueOptions, LearnedCue
 from .candidates import cluster_candidates
-from .ground import GroundModel, horizon_far_mask
+from .ground import GroundModel
 from .novelty import NoveltyDetector, dilate_cells, mask_to_camera, obstacle_cells
 from .stereo import (StereoConfig, StereoPipeline, band_mask, check_matcher, dedupe_cells, drop_dark,
                      disparity_regions, downscale, local_heights, make_matcher, mask_boxes,
                      match_factor, merge_strips, point_confidence, points_from_disparity,
-                     scaled_calibration, strip_boxes, vertical_support, local_ground_of)
+                     scaled_calibration, strip_boxes, vertical_support, local_ground_of,
+                     heights_above)
 
 # the paper gives the 32x32 cells, the 40-frame update and the 3-sigma search; the other
 # defaults were chosen on a tuning run (stubble-empty, seed 1), see docs/stereo-novelty.md
@@ -325,10 +326,7 @@ class StereoNoveltyPipeline(Pipeline):
             # the depth cue only chooses what is matched densely: it raises cells by the
             # heights above the base ground (level or fit); the local ground judges the dense
             # points
-            h = self._ground.base.height(pts)
-            if o.sky_far_m > 0 and len(h):
-                h[horizon_far_mask(pts, calib.mount.z_m, o.sky_far_m, self._ground.base)] = \
-                    -np.inf
+            h = heights_above(self._ground.base, pts, o, calib.mount.z_m)
         return h
 
     def _coarse_pass(self, fr, vehicle, matcher: str):
@@ -481,9 +479,7 @@ class StereoNoveltyPipeline(Pipeline):
             # sparse on far stubble: 15 m ahead only an object's own bins had coarse points)
             src = pts if self._coarse_pts is None else np.concatenate([self._coarse_pts, pts])
             ground = self._ground = local_ground_of(src, o, getattr(ground, "base", ground))
-        h = ground.height(pts)
-        if o.sky_far_m > 0 and len(h):
-            h[horizon_far_mask(pts, calib.mount.z_m, o.sky_far_m, ground)] = -np.inf
+        h = heights_above(ground, pts, o, calib.mount.z_m)
         keep = band_mask(pts, h, o.band_min_m, o.band_max_m, o.max_range_m)
         if o.support_min > 0 and keep.any():
             idx = np.flatnonzero(keep)
