@@ -64,6 +64,7 @@ GROUP = "239.74.163.3"
 SYSID = 42
 PERIOD_S = 0.1
 MAV_STOP, MAV_CLEAR = 6, 4
+HOLD_MODE = 4                   # the link's hold_custom_mode (default; Rover HOLD)
 STATE_NAME = {4: "CLEAR", 5: "SLOW", 6: "STOP"}
 LASER_TIMEOUT, TRIGGER_TIMEOUT, MAV_TIMEOUT, CAN_TIMEOUT = 0.1, 0.1, 0.5, 0.3
 # The fake cameras answer a software trigger at their own frame tick, not at once, so now and
@@ -81,6 +82,7 @@ ARV_FAKE = "arv-fake-gv-camera-0.8"
 CAMERAS = {"left": ("127.0.0.1", "GV01"), "right": ("127.0.0.2", "GV02")}
 WALLSTEP_SOURCE = ROOT / "tools/soak_assets/wallstep.c"
 FAULT_HOLD_S = 0.3
+HEAP_EVERY_S = 900.0   # --heap: a tracemalloc snapshot of the daemon this often after warm-up
 WARMUP_S = 120.0       # RSS and fds are judged from this long after the status socket answered
 # kind -> weight in the schedule (restarts rarer: each one starts a new process to watch)
 FAULTS = {"sick_silent": 3, "sick_late": 3, "sick_garbage": 3, "sick_truncate": 2,
@@ -275,6 +277,7 @@ class Box:
         self.kinect: tuple[str, str] | None = None   # (fakenect dump, preload stub)
         self.wallstep: str | None = None  # the preload that steps the daemon's wall clock
         self.clock_file = out / "wallclock-offset"
+        self.heap_frames = 0              # --heap: PYTHONTRACEMALLOC for the daemon
         self.calibration = out / "stereo-calibration.json"
 
     def write_calibration(self):
@@ -386,13 +389,17 @@ backoff_max_s = 0.5
         self.log.write(f"\n==== start {time.monotonic():.3f}\n".encode())
         self.log.flush()
         env = None
+        if self.heap_frames:
+            # tracemalloc from the interpreter's start: the daemon's Python heap is counted
+            # (numpy's buffers included) and its status says so ("heap": traced_mb)
+            env = {**os.environ, "PYTHONTRACEMALLOC": str(self.heap_frames)}
         if self.wallstep:
             # the wall clock as the daemon sees it is the host's + the offset in clock_file,
             # read again at most every 0.1 s; the monotonic clock is left alone (a real NTP
             # step or an operator's `date -s` moves only CLOCK_REALTIME)
             if not self.clock_file.exists():
                 self.step_clock(0)
-            env = {**os.environ, "LD_PRELOAD": self.wallstep,
+            env = {**(env or os.environ), "LD_PRELOAD": self.wallstep,
                    "WALLSTEP_FILE": str(self.clock_file)}
         self.proc = subprocess.Popen(argv + ["run", "--config", str(self.cfg)], cwd=str(ROOT),
                                      stdin=subprocess.DEVNULL, stdout=self.log,
@@ -441,6 +448,7 @@ class Soak:
         self.only: list[str] = []
         self.warmup_s = WARMUP_S
         self.without: set[str] = set()
+        self.heap_dumps: list[dict] = []
 
     # ---- set-up ------------------------------------------------------------------------------
     def setup(self):
@@ -552,7 +560,10 @@ class Soak:
                 s["state"] = st.get("state")
                 s["overruns"] = loop.get("overruns", st.get("overruns"))
                 s["cycles"] = loop.get("cycles", st.get("cycles"))
+                if st.get("heap"):
+                    s["heap_mb"] = st["heap"]["traced_mb"]
             self.samples.append(s)
+            self._heap_snapshots(s)
             if self.box.proc is not None and self.box.proc.poll() is not None and \
                     self.restarting.acquire(blocking=False):
                 try:                          # it died by itself: a restart, as systemd would
@@ -562,6 +573,28 @@ class Soak:
                 finally:
                     self.restarting.release()
             self.stop_evt.wait(max(0.0, 1.0 - (time.monotonic() - t)))
+
+    def _heap_snapshots(self, s, final=False):
+        """With --heap: a tracemalloc snapshot of the daemon once warm, and then every
+        HEAP_EVERY_S (the last one of a process is compared with its first by
+        tools/heap_diff.py, which names the lines whose allocations grew)."""
+        if not self.box.heap_frames or "heap_mb" not in s:
+            return
+        up = [x["t"] for x in self.samples if x.get("inc") == s["inc"] and x.get("state")]
+        if not up or s["t"] < up[0] + self.warmup_s:
+            return
+        last = self.heap_dumps[-1] if self.heap_dumps else None
+        if last is not None and last["inc"] == s["inc"] and s["t"] - last["t"] < HEAP_EVERY_S \
+                and not final:
+            return
+        path = self.out / f"heap-{s['inc']}-{int(s['t'] - self.t0):06d}.snap"
+        from appliance.status import request_json
+        try:
+            doc = request_json(str(self.box.sock), f"heap {path}", timeout_s=30.0)
+        except Exception as exc:
+            doc = {"error": f"{type(exc).__name__}: {exc}"}
+        self.heap_dumps.append({"t": s["t"], "inc": s["inc"], "path": str(path),
+                                "error": doc.get("error"), "traced_mb": doc.get("traced_mb")})
 
     def mav_state(self):
         hb = [e for e in self.wire.events("mav") if e.get("ev") == "hb"]
@@ -673,13 +706,31 @@ class Soak:
             time.sleep(max(hold, MAV_TIMEOUT + 0.5))
             w.mav.cmd("talk")
         elif kind == "mav_refuse":
-            # the box must know the vehicle left HOLD (its 1 Hz HEARTBEAT after "mode 10"), and
-            # the vehicle must have taken "refuse" before the STOP's first HOLD goes out
-            time.sleep(max(0.0, self.mode_at + 1.5 - now()))
-            n0 = len(w.mav.find(ev="set_mode", answer="denied"))
-            n_ack = len(w.mav.find(ev="ack_cmd", cmd="refuse"))
-            w.mav.cmd("refuse 1000")
-            wait_for(lambda: len(w.mav.find(ev="ack_cmd", cmd="refuse")) > n_ack, 5)
+            # A refusal tests the box only if the vehicle is moving when it refuses: the box
+            # must have heard the vehicle's own HEARTBEAT report a mode other than HOLD, and no
+            # HOLD may have been accepted since (the two-hour soak's four refusals all began
+            # with the vehicle already holding, after an unprompted STOP, and tested nothing).
+            # So: "mode 10" (the operator resumes), the vehicle's next HEARTBEAT with it, then
+            # "refuse"; if a HOLD was accepted meanwhile, undo and try again.
+            for attempt in range(4):
+                n_vhb = len(w.mav.find(ev="vhb"))
+                n_acc = len(w.mav.find(ev="set_mode", answer="accepted"))
+                w.mav.cmd("mode 10")
+                self.mode_at = now()
+                wait_for(lambda: any(e["mode"] == 10 for e in w.mav.find(ev="vhb")[n_vhb:]),
+                         3)
+                time.sleep(0.2)                   # the HEARTBEAT reaches the box
+                n0 = len(w.mav.find(ev="set_mode", answer="denied"))
+                n_ack = len(w.mav.find(ev="ack_cmd", cmd="refuse"))
+                w.mav.cmd("refuse 1000")
+                wait_for(lambda: len(w.mav.find(ev="ack_cmd", cmd="refuse")) > n_ack, 5)
+                vhb = w.mav.find(ev="vhb")[n_vhb:]
+                moving = any(e["mode"] == 10 for e in vhb) and \
+                    len(w.mav.find(ev="set_mode", answer="accepted")) == n_acc
+                if moving:
+                    break
+                w.mav.cmd("accept")
+            f["attempts"] = attempt + 1
             t = f["t_inject"] = now()
             w.sick.cmd("object 2.0")              # a post 2 m ahead of the scanner: STOP
             ok = wait_for(lambda: len(w.mav.find(ev="set_mode", answer="denied")) > n0, 5)
@@ -687,8 +738,14 @@ class Soak:
             den = w.mav.find(ev="set_mode", answer="denied")
             f["t_detect"] = den[n0]["t"] if ok else t
             f["refused"] = ok
+            # the vehicle's own mode when it refused (its last HEARTBEAT before)
+            before = [e for e in w.mav.find(ev="vhb") if e["t"] <= f["t_detect"]]
+            f["vehicle_mode"] = before[-1]["mode"] if before else None
             if not ok:
                 f["expect"] = "refusal (the vehicle never refused: not a test of the box)"
+            elif not moving or f["vehicle_mode"] != 10:
+                f["expect"] = ("refusal (the vehicle was holding already when it refused: "
+                               "not a test of the box)")
             w.sick.cmd("clear")                   # the post is gone; the refusal is not
             time.sleep(hold)
             w.mav.cmd("accept")
@@ -840,6 +897,8 @@ class Soak:
                       nxt + self.interval * self.rng.uniform(0.8, 1.2))
         time.sleep(2.0)
         self.cli_status()
+        if self.box.heap_frames and self.samples and self.box.alive():
+            self._heap_snapshots(dict(self.samples[-1], t=time.monotonic()), final=True)
         self.final_status = self.box.status()
         self.stop_evt.set()
         self.box.stop()
@@ -870,6 +929,9 @@ class Soak:
             return last
 
         od = sorted(e["t"] for e in self.wire.events("mav") if e.get("ev") == "od")
+        vhb = sorted((e["t"], e["mode"]) for e in self.wire.events("mav")
+                     if e.get("ev") == "vhb")
+
         def cycles(td, ts):
             return wire_cycles(od, td, ts)
 
@@ -904,6 +966,13 @@ class Soak:
             fc = 0
             if f["expect"] == "stop":
                 w0, w1 = nth_cycle_after(td, 2), tr   # from the 2nd cycle after detectable
+                if f["kind"] == "mav_refuse":
+                    # a refused HOLD is FAULT until the vehicle holds by any means; its own
+                    # HEARTBEAT reporting HOLD (mode 4) ends it (docs/vehicle-links.md)
+                    holds = [t for t, m in vhb if t > td and m == HOLD_MODE]
+                    if holds:
+                        w1 = min(w1, holds[0])
+                        g["vehicle_holds_at"] = round(holds[0] - self.t0, 3)
                 if w1 > w0:
                     s0 = state_at(hb, w0)
                     fc += int(s0 is None or s0[1] != MAV_STOP)
@@ -1026,7 +1095,7 @@ class Soak:
         # RSS split: anonymous memory (what a leak grows) and file-backed pages (library code
         # paged in the first time a fault's code path runs: grows early, then saturates)
         split = {}
-        for key in ("anon_mb", "file_mb"):
+        for key in ("anon_mb", "file_mb", "heap_mb"):
             parts = [sums(seg, key) for seg in judged]
             den = sum(d for _, d in parts)
             split[key] = round(sum(n for n, _ in parts) / den, 3) if den else None
@@ -1077,6 +1146,9 @@ class Soak:
             "rss_slope_mb_per_h": None if slope is None else round(slope, 3),
             "rss_anon_slope_mb_per_h": split.get("anon_mb") if judged else None,
             "rss_file_slope_mb_per_h": split.get("file_mb") if judged else None,
+            # --heap: Python's traced heap (tracemalloc), its slope over the same processes
+            "heap_traced_slope_mb_per_h": split.get("heap_mb") if judged else None,
+            "heap_snapshots": self.heap_dumps,
             "rss_judged_over_s": round(sum(seg[-1]["t"] - seg[0]["t"] for seg in judged)),
             "rss_processes_judged": len(judged),
             "rss_slope_longest_process_mb_per_h": None if longest is None else round(longest, 3),
@@ -1233,6 +1305,7 @@ def analyse_again(a) -> int:
         die(f"{out / 'events.json'}: {exc}")
     soak = Soak(out, a.minutes, a.seed, a.interval)
     soak.warmup_s = a.warmup
+    soak.heap_dumps = ev.get("heap_snapshots", [])
     soak.t0 = ev["t0"]
     soak.box.starts = [t + soak.t0 for t in ev["starts"]]
     soak.samples = [dict(x, t=x["t"] + soak.t0) for x in ev["samples"]]
@@ -1260,6 +1333,12 @@ def main(argv=None) -> int:
     ap.add_argument("--out", required=True, help="directory for the summary, events and plots")
     ap.add_argument("--json", action="store_true", help="print the summary as JSON")
     ap.add_argument("--interval", type=float, default=20.0, help="seconds between faults")
+    ap.add_argument("--heap", type=int, default=0, metavar="FRAMES",
+                    help="run the daemon with tracemalloc (PYTHONTRACEMALLOC=FRAMES): its "
+                         "traced heap is sampled every second and its slope reported "
+                         "(heap_traced_slope_mb_per_h); snapshots after warm-up and every "
+                         f"{HEAP_EVERY_S:.0f} s go to DIR (compare: tools/heap_diff.py); "
+                         "costs the daemon CPU")
     ap.add_argument("--faults", default="",
                     help="comma-separated fault kinds to draw from (default: all): "
                          + ", ".join(FAULTS))
@@ -1299,6 +1378,7 @@ def main(argv=None) -> int:
     soak = Soak(out, a.minutes, a.seed, a.interval)
     soak.only = only
     soak.warmup_s = a.warmup
+    soak.box.heap_frames = a.heap
     soak.without = {x for x in a.without.split(",") if x}
     try:
         soak.run()
@@ -1310,9 +1390,10 @@ def main(argv=None) -> int:
         "t0": soak.t0, "starts": [s - soak.t0 for s in soak.box.starts],
         "samples": [{k: (round(v - soak.t0, 2) if k == "t" else v) for k, v in s.items()}
                     for s in soak.samples],
-        "mav": [e for e in soak.wire.events("mav") if e.get("ev") in ("hb", "set_mode", "od")],
+        "mav": [e for e in soak.wire.events("mav")
+                if e.get("ev") in ("hb", "set_mode", "od", "vhb")],
         "can": [e for e in soak.wire.events("can") if e.get("ev") == "state"],
-        "faults": soak.faults, "load": soak.load,
+        "faults": soak.faults, "load": soak.load, "heap_snapshots": soak.heap_dumps,
         "gige": soak.box.gige, "wallstep": soak.box.wallstep, "kinect": soak.box.kinect,
         "t_faults": getattr(soak, "t_faults", soak.t0) - soak.t0}))
     summary = soak.analyse()

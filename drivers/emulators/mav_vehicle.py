@@ -18,7 +18,8 @@ line; prints one JSON event per line on stdout:
     quit
 
 Events: {"ev": "ready"}, {"ev": "set_mode", "mode": 4, "confirmation": 0, "answer": "..."},
-{"ev": "rx", "type": "..."} for the first message of each type from the box.
+{"ev": "rx", "type": "..."} for the first message of each type from the box; with --states also
+"hb", "od" and "vhb" (see --help).
 """
 from __future__ import annotations
 
@@ -49,7 +50,9 @@ def main():
                     help="print every HEARTBEAT from a component 196 (the box) as "
                          '{"ev": "hb", "status": MAV_STATE, "t": monotonic, "lost": n, "rx": n}; '
                          "lost counts gaps in the box's packet sequence numbers; and "
-                         '{"ev": "od", "t": monotonic} for every OBSTACLE_DISTANCE (one a cycle)')
+                         '{"ev": "od", "t": monotonic} for every OBSTACLE_DISTANCE (one a cycle); '
+                         'and {"ev": "vhb", "mode": N, "t": monotonic} for each HEARTBEAT the '
+                         "vehicle itself sends (its own mode, as the box is told it)")
     a = ap.parse_args()
     m = mavutil.mavlink_connection(a.connection, source_system=a.sysid, source_component=1,
                                    dialect="ardupilotmega")
@@ -110,6 +113,8 @@ def main():
                                          mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
                                          mavutil.mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | 128,
                                          mode, mavutil.mavlink.MAV_STATE_ACTIVE)
+                    if a.states:
+                        emit(ev="vhb", mode=mode, t=time.monotonic())
                 m.mav.attitude_send(boot_ms, math.nan if nan else 0.02, -0.05, 0.3, 0.0, 0.0,
                                     0.1)
                 m.mav.vfr_hud_send(speed, speed, 17, 0, 0.0, 0.0)
