@@ -26,7 +26,8 @@ from appliance.fusion import GridFusion
 from appliance.gate import SafetyGate
 from appliance.perception.base import Detections
 from appliance.tracking import Tracker, TrackView
-from appliance.zones import ZoneVerdict, assess, drop_excluded, sectors, stop_length
+from appliance.zones import (ZoneVerdict, assess, drop_excluded, footprint_meets,
+                             footprints_meet, sectors, stop_length, zone_rects)
 from hal.types import GateOutput, VehicleState
 
 
@@ -45,29 +46,17 @@ class Picture:
         return [t for t in self.tracks if t.confirmed]
 
 
-def _overlap_x(t: TrackView, x0: float, x1: float, half_width: float, dx: float = 0.0,
-               dy: float = 0.0) -> bool:
-    x, y = t.x_m + dx, t.y_m + dy
-    return (x + t.length_m / 2 >= x0 and x - t.length_m / 2 <= x1
-            and abs(y) - t.width_m / 2 <= half_width)
-
-
-def _cells_in(c: np.ndarray, x0: float, x1: float, half_width: float, dx: float = 0.0,
-              dy: float = 0.0) -> bool:
-    if not len(c):
-        return False
-    x, y = c[:, 0] + dx, c[:, 1] + dy
-    return bool(np.any((x >= x0) & (x <= x1) & (np.abs(y) <= half_width)))
-
-
 def assess_tracks(tracks: list[TrackView], cells_xy: np.ndarray, speed_mps: float, cfg: Config,
                   cells_by_id: dict[int, np.ndarray] | None = None) -> ZoneVerdict:
     """The zone verdict on confirmed tracks (see the module doc). ``cells_by_id``: each
-    track's cells; a track with cells is in a zone when one of its cells is (a front end's
-    candidate can be far larger than what stands in it), else when its footprint is."""
+    track's cells; a track with cells is in a zone when any part of one of its cells is (a
+    front end's candidate can be far larger than what stands in it), else when any part of
+    its footprint is (the one zone test, :func:`appliance.zones.footprints_meet`)."""
     z, tc = cfg.zones, cfg.tracking
     stop_len = stop_length(speed_mps, z)
     slow_len = stop_len + z.slow_extra_m
+    stop_rect, slow_rect = zone_rects(speed_mps, z)
+    cell_m = cfg.grid.cell_m
     f = z.front_x_m
     horizon = z.reaction_time_s
     steps = np.linspace(0.0, horizon, 6)[1:] if horizon > 0 else np.zeros(0)
@@ -80,23 +69,23 @@ def assess_tracks(tracks: list[TrackView], cells_xy: np.ndarray, speed_mps: floa
             continue
         tc_ = None if cells_by_id is None else cells_by_id.get(t.id)
         if tc_ is not None and len(tc_):
-            def inside(x0, x1, dx=0.0, dy=0.0, c=tc_):
-                return _cells_in(c, x0, x1, z.half_width_m, dx, dy)
+            def inside(rect, dx=0.0, dy=0.0, c=tc_):
+                return bool(footprints_meet(c + (dx, dy), cell_m, cell_m, rect).any())
         else:
-            def inside(x0, x1, dx=0.0, dy=0.0, t=t):
-                return _overlap_x(t, x0, x1, z.half_width_m, dx, dy)
-        in_stop = inside(f, f + stop_len)
-        in_slow = not in_stop and inside(f + stop_len, f + slow_len)
+            def inside(rect, dx=0.0, dy=0.0, t=t):
+                return footprint_meets(t.x_m + dx, t.y_m + dy, t.length_m, t.width_m, rect)
+        in_stop = inside(stop_rect)
+        in_slow = not in_stop and inside(slow_rect)
         moving = math.hypot(t.vx_mps, t.vy_mps) >= tc.predict_min_mps
         if not in_stop and moving:
             for s in steps:
-                if inside(f, f + stop_len, t.vx_mps * s, t.vy_mps * s):
+                if inside(stop_rect, t.vx_mps * s, t.vy_mps * s):
                     in_stop = True
                     stop_pred[t.id] = float(s)
                     break
         if not in_stop and not in_slow and moving:
             for s in steps:
-                if inside(f + stop_len, f + slow_len, t.vx_mps * s, t.vy_mps * s):
+                if inside(slow_rect, t.vx_mps * s, t.vy_mps * s):
                     in_slow = True
                     slow_pred[t.id] = float(s)
                     break
