@@ -71,6 +71,8 @@ def footprints_meet(centres_xy, length_m, width_m, rect: dict, yaw_rad=0.0) -> n
     # the zone's axes: the footprint's half extents along x and y
     meet = np.abs(dx) - (hl * ac + hw * as_) - zl < -MEET_TOL_M
     meet &= np.abs(dy) - (hl * as_ + hw * ac) - zh < -MEET_TOL_M
+    if not np.any(sin):     # square to the zone (cells, tracks): its axes are the zone's
+        return meet
     # the footprint's axes: the zone's half extents along them
     meet &= np.abs(dx * cos + dy * sin) - hl - (zl * ac + zh * as_) < -MEET_TOL_M
     meet &= np.abs(-dx * sin + dy * cos) - hw - (zl * as_ + zh * ac) < -MEET_TOL_M
