@@ -26,7 +26,8 @@ from appliance.fusion import GridFusion
 from appliance.gate import SafetyGate
 from appliance.perception.base import Detections
 from appliance.tracking import Tracker, TrackView
-from appliance.zones import ZoneVerdict, assess, drop_excluded, sectors, stop_length
+from appliance.zones import (ZoneVerdict, assess, drop_excluded, footprints_meet, sectors,
+                             stop_length, zone_rects)
 from hal.types import GateOutput, VehicleState
 
 
@@ -45,63 +46,67 @@ class Picture:
         return [t for t in self.tracks if t.confirmed]
 
 
-def _overlap_x(t: TrackView, x0: float, x1: float, half_width: float, dx: float = 0.0,
-               dy: float = 0.0) -> bool:
-    x, y = t.x_m + dx, t.y_m + dy
-    return (x + t.length_m / 2 >= x0 and x - t.length_m / 2 <= x1
-            and abs(y) - t.width_m / 2 <= half_width)
-
-
-def _cells_in(c: np.ndarray, x0: float, x1: float, half_width: float, dx: float = 0.0,
-              dy: float = 0.0) -> bool:
-    if not len(c):
-        return False
-    x, y = c[:, 0] + dx, c[:, 1] + dy
-    return bool(np.any((x >= x0) & (x <= x1) & (np.abs(y) <= half_width)))
-
-
 def assess_tracks(tracks: list[TrackView], cells_xy: np.ndarray, speed_mps: float, cfg: Config,
                   cells_by_id: dict[int, np.ndarray] | None = None) -> ZoneVerdict:
     """The zone verdict on confirmed tracks (see the module doc). ``cells_by_id``: each
-    track's cells; a track with cells is in a zone when one of its cells is (a front end's
-    candidate can be far larger than what stands in it), else when its footprint is."""
+    track's cells; a track with cells is in a zone when any part of one of its cells is (a
+    front end's candidate can be far larger than what stands in it), else when any part of
+    its footprint is (the one zone test, :func:`appliance.zones.footprints_meet`)."""
     z, tc = cfg.zones, cfg.tracking
     stop_len = stop_length(speed_mps, z)
     slow_len = stop_len + z.slow_extra_m
+    stop_rect, slow_rect = zone_rects(speed_mps, z)
+    cell_m = cfg.grid.cell_m
     f = z.front_x_m
     horizon = z.reaction_time_s
     steps = np.linspace(0.0, horizon, 6)[1:] if horizon > 0 else np.zeros(0)
     stop, slow, nearest = [], [], None
     stop_pred, slow_pred = {}, {}
-    for t in tracks:
-        if not t.confirmed:
-            continue
-        if len(z.exclusion) and not len(drop_excluded(np.array([[t.x_m, t.y_m]]), z)):
-            continue
-        tc_ = None if cells_by_id is None else cells_by_id.get(t.id)
-        if tc_ is not None and len(tc_):
-            def inside(x0, x1, dx=0.0, dy=0.0, c=tc_):
-                return _cells_in(c, x0, x1, z.half_width_m, dx, dy)
-        else:
-            def inside(x0, x1, dx=0.0, dy=0.0, t=t):
-                return _overlap_x(t, x0, x1, z.half_width_m, dx, dy)
-        in_stop = inside(f, f + stop_len)
-        in_slow = not in_stop and inside(f + stop_len, f + slow_len)
+    live = [t for t in tracks if t.confirmed and not (
+        len(z.exclusion) and not len(drop_excluded(np.array([[t.x_m, t.y_m]]), z)))]
+    # every live track's footprints (its cells, else its own footprint) now and at each
+    # predicted step, tested against both zones in two calls (a call per track and step cost
+    # 10 ms a cycle with 30 moving tracks)
+    shifts = np.concatenate([[0.0], steps])
+    k_n, n_t = len(shifts), len(live)
+    own = [None if cells_by_id is None else cells_by_id.get(t.id) for t in live]
+    own = [None if c is None or not len(c) else np.asarray(c, dtype=np.float64).reshape(-1, 2)
+           for c in own]
+    if live:
+        base = np.concatenate([np.array([[t.x_m, t.y_m]]) if c is None else c
+                               for t, c in zip(live, own)])
+        counts = np.array([1 if c is None else len(c) for c in own])
+        size = np.repeat(np.array([(t.length_m, t.width_m) if c is None else (cell_m, cell_m)
+                                   for t, c in zip(live, own)]), counts, axis=0)
+        vel = np.repeat(np.array([(t.vx_mps, t.vy_mps) for t in live]), counts, axis=0)
+        xy = (base[None] + shifts[:, None, None] * vel[None]).reshape(-1, 2)   # step-major
+        size = np.tile(size, (k_n, 1))
+        g = (np.repeat(np.arange(n_t), counts)[None, :] * k_n
+             + np.arange(k_n)[:, None]).ravel()                             # track, step
+
+        def hits(rect):
+            m = footprints_meet(xy, size[:, 0], size[:, 1], rect)
+            return np.bincount(g[m], minlength=n_t * k_n).reshape(n_t, k_n) > 0
+        hit_stop, hit_slow = hits(stop_rect), hits(slow_rect)
+    for i, t in enumerate(live):
+        tc_ = own[i]
+        in_stop = bool(hit_stop[i, 0])
+        in_slow = not in_stop and bool(hit_slow[i, 0])
         moving = math.hypot(t.vx_mps, t.vy_mps) >= tc.predict_min_mps
         if not in_stop and moving:
-            for s in steps:
-                if inside(f, f + stop_len, t.vx_mps * s, t.vy_mps * s):
+            for k in range(1, k_n):
+                if hit_stop[i, k]:
                     in_stop = True
-                    stop_pred[t.id] = float(s)
+                    stop_pred[t.id] = float(shifts[k])
                     break
         if not in_stop and not in_slow and moving:
-            for s in steps:
-                if inside(f + stop_len, f + slow_len, t.vx_mps * s, t.vy_mps * s):
+            for k in range(1, k_n):
+                if hit_slow[i, k]:
                     in_slow = True
-                    slow_pred[t.id] = float(s)
+                    slow_pred[t.id] = float(shifts[k])
                     break
         if in_stop or in_slow:
-            if tc_ is not None and len(tc_):
+            if tc_ is not None:
                 ahead = max(0.0, float(tc_[:, 0].min()) - f)
             else:
                 ahead = max(0.0, t.x_m - t.length_m / 2 - f)

@@ -299,25 +299,11 @@ def default_pipelines(info: RunInfo, cfg=None, configured: bool = False) -> list
 
 def _rect_intersects(ob: dict, rect: dict) -> bool:
     """Does the obstacle's footprint (length x width turned by yaw_deg) meet the zone rectangle
-    {x_min_m, x_max_m, half_width_m}? (Separating axes of the two rectangles.)"""
-    yaw = math.radians(float(ob.get("yaw_deg", 0.0)))
-    c, s = math.cos(yaw), math.sin(yaw)
-    hl, hw = float(ob["length_m"]) / 2, float(ob["width_m"]) / 2
-    x, y = float(ob["x_m"]), float(ob["y_m"])
-    corners = np.array([[x + c * a - s * b, y + s * a + c * b]
-                        for a in (-hl, hl) for b in (-hw, hw)])
-    zx0, zx1, zh = rect["x_min_m"], rect["x_max_m"], rect["half_width_m"]
-    if corners[:, 0].max() < zx0 or corners[:, 0].min() > zx1:
-        return False
-    if corners[:, 1].max() < -zh or corners[:, 1].min() > zh:
-        return False
-    zc = np.array([[zx0, -zh], [zx0, zh], [zx1, -zh], [zx1, zh]])
-    for ax in (np.array([c, s]), np.array([-s, c])):
-        p_ob = corners @ ax
-        p_z = zc @ ax
-        if p_ob.max() < p_z.min() or p_z.max() < p_ob.min():
-            return False
-    return True
+    {x_min_m, x_max_m, half_width_m}? (The box's own zone test, appliance/zones.py.)"""
+    from appliance.zones import footprint_meets
+    return footprint_meets(float(ob["x_m"]), float(ob["y_m"]), float(ob["length_m"]),
+                           float(ob["width_m"]), rect,
+                           math.radians(float(ob.get("yaw_deg", 0.0))))
 
 
 def decision_record(index: int, stamp_ns: int, out, picture, rects, cause: str) -> dict:

@@ -48,6 +48,7 @@ from scipy.optimize import linear_sum_assignment
 
 from appliance.config import GridConfig, TrackingConfig
 from appliance.perception.base import Candidate, Detections
+from appliance.zones import footprints_meet
 from hal.types import VehicleState
 
 SOURCES = ("laser", "geometry", "novelty", "cue", "colour", "texture")
@@ -515,16 +516,18 @@ class Tracker:
 
     def _fast(self, t: Track, stop_zone) -> bool:
         """Confirmed on this frame's candidate alone: a laser return cluster (laser_fast), or
-        a cell in the stop zone with strong geometry or laser evidence (stop_zone_strength)."""
+        a cell (any part of it) in the stop zone with strong geometry or laser evidence
+        (stop_zone_strength)."""
         c = self.cfg
         if c.laser_fast and t.strength_in.get("laser", 0.0) > 0:
             return True
         if c.stop_zone_strength > 0 and stop_zone is not None and len(t.cells_xy):
             s = max(t.strength_in.get("geometry", 0.0), t.strength_in.get("laser", 0.0))
             x0, x1, hw = stop_zone
-            cx, cy = t.cells_xy[:, 0], t.cells_xy[:, 1]
+            rect = {"x_min_m": x0, "x_max_m": x1, "half_width_m": hw}
+            cell = self.grid.cell_m         # any part of a cell in the stop zone (zones.py)
             if s >= c.stop_zone_strength - 1e-9 and bool(
-                    np.any((cx >= x0) & (cx <= x1) & (np.abs(cy) <= hw))):
+                    footprints_meet(t.cells_xy, cell, cell, rect).any()):
                 return True
         return False
 

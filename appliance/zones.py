@@ -40,6 +40,57 @@ def zone_rects(speed_mps: float, z: ZonesConfig) -> tuple[dict, dict]:
             {"x_min_m": f + stop_len, "x_max_m": f + slow_len, "half_width_m": z.half_width_m})
 
 
+# a footprint must reach more than this into a zone to meet it: only touching its edge is
+# not meeting it (the grid's cells share edges with a zone whose length is a multiple of the
+# cell size, e.g. the 2.0 m stop zone at standstill, and rounding must not decide those)
+MEET_TOL_M = 1e-9
+
+
+def footprints_meet(centres_xy, length_m, width_m, rect: dict, yaw_rad=0.0) -> np.ndarray:
+    """Per footprint: does any part of it lie in the zone rectangle ``rect`` ({x_min_m,
+    x_max_m, half_width_m}, vehicle frame, as :func:`zone_rects` gives)? The one zone test of
+    the box: a safety box stops for the near edge of a thing, not for its centre.
+
+    A footprint is a rectangle ``length_m`` (along its heading) x ``width_m``, centred on its
+    row of ``centres_xy`` (N, 2) and turned ``yaw_rad`` counter-clockwise from x: a grid cell
+    is ``cell_m`` x ``cell_m`` at yaw 0, a track its length x width, a truth obstacle its
+    turned footprint, a point 0 x 0. ``length_m``, ``width_m`` and ``yaw_rad`` are scalars or
+    one per footprint. It meets the zone when the two rectangles overlap by more than
+    ``MEET_TOL_M`` (separating axes: the zone's two and the footprint's two); one that only
+    touches an edge does not (a cell's hits are in [edge, edge + cell), not on the edge).
+    Pure: arrays in, a bool array out."""
+    c = np.asarray(centres_xy, dtype=np.float64).reshape(-1, 2)
+    hl = 0.5 * np.asarray(length_m, dtype=np.float64)
+    hw = 0.5 * np.asarray(width_m, dtype=np.float64)
+    yaw = np.asarray(yaw_rad, dtype=np.float64)
+    cos, sin = np.cos(yaw), np.sin(yaw)
+    ac, as_ = np.abs(cos), np.abs(sin)
+    x0, x1 = float(rect["x_min_m"]), float(rect["x_max_m"])
+    zl, zh = 0.5 * (x1 - x0), float(rect["half_width_m"])
+    dx, dy = c[:, 0] - 0.5 * (x0 + x1), c[:, 1]
+    # the zone's axes: the footprint's half extents along x and y
+    meet = np.abs(dx) - (hl * ac + hw * as_) - zl < -MEET_TOL_M
+    meet &= np.abs(dy) - (hl * as_ + hw * ac) - zh < -MEET_TOL_M
+    if not np.any(sin):     # square to the zone (cells, tracks): its axes are the zone's
+        return meet
+    # the footprint's axes: the zone's half extents along them
+    meet &= np.abs(dx * cos + dy * sin) - hl - (zl * ac + zh * as_) < -MEET_TOL_M
+    meet &= np.abs(-dx * sin + dy * cos) - hw - (zl * as_ + zh * ac) < -MEET_TOL_M
+    return meet
+
+
+def footprint_meets(x_m: float, y_m: float, length_m: float, width_m: float, rect: dict,
+                    yaw_rad: float = 0.0) -> bool:
+    """:func:`footprints_meet` for one footprint."""
+    return bool(footprints_meet(np.array([[x_m, y_m]]), length_m, width_m, rect, yaw_rad)[0])
+
+
+def path_rect(z: ZonesConfig, reach_m: float = 1000.0) -> dict:
+    """The vehicle's path ahead of its front (the zones' width, ``reach_m`` long)."""
+    return {"x_min_m": z.front_x_m, "x_max_m": z.front_x_m + reach_m,
+            "half_width_m": z.half_width_m}
+
+
 def stop_length(speed_mps: float, z: ZonesConfig) -> float:
     v = max(0.0, speed_mps)
     return max(z.min_stop_m, v * z.reaction_time_s + v * v / (2 * z.decel_mps2) + z.margin_m)
@@ -83,9 +134,11 @@ def assess(cells_xy: np.ndarray, speed_mps: float, z: ZonesConfig,
     """The zone verdict on occupied cells. ``confirmed`` (one flag per cell, or None: all):
     only a confirmed cell in the stop zone makes a STOP; an unconfirmed one there is a SLOW
     (``[grid] stop_at``: a cell seen in too few cycles running to stop for). ``cell_m``: the
-    cells' size; a cell is in a zone when any part of it is (its centre may be up to half a
-    cell beyond the zone's far end or side while what hit it is inside), so what the grid
-    holds 4 cm beyond the stop zone's end is a STOP, not a SLOW one cycle too long."""
+    cells' size; a cell is in a zone when any part of it is (:func:`footprints_meet`: its
+    centre may be up to half a cell beyond the zone's far end, side or near end while what
+    hit it is inside), so what the grid holds 4 cm beyond the stop zone's end is a STOP, not a
+    SLOW one cycle too long. ``nearest_m``: the nearest such cell's centre from the front (0
+    when its centre is behind the front)."""
     cells = np.asarray(cells_xy, dtype=np.float64).reshape(-1, 2)
     if confirmed is not None:
         keep = kept_mask(cells, z)
@@ -95,14 +148,14 @@ def assess(cells_xy: np.ndarray, speed_mps: float, z: ZonesConfig,
         conf = np.ones(len(cells), bool)
     stop_len = stop_length(speed_mps, z)
     slow_len = stop_len + z.slow_extra_m
-    h = 0.5 * cell_m
-    ahead = cells[:, 0] - z.front_x_m if len(cells) else np.zeros(0)
-    in_path = np.abs(cells[:, 1]) - h <= z.half_width_m if len(cells) else np.zeros(0, bool)
-    fwd = in_path & (ahead >= 0)
-    stop_cells = fwd & (ahead - h <= stop_len)
+    stop_rect, slow_rect = zone_rects(speed_mps, z)
+    ahead = np.maximum(cells[:, 0] - z.front_x_m, 0.0)
+    fwd = footprints_meet(cells, cell_m, cell_m, path_rect(z))
+    stop_cells = fwd & footprints_meet(cells, cell_m, cell_m, stop_rect)
     in_stop = int(np.count_nonzero(stop_cells & conf))
     waiting = int(np.count_nonzero(stop_cells & ~conf))
-    in_slow = int(np.count_nonzero(fwd & ~stop_cells & (ahead - h <= slow_len))) + waiting
+    in_slow = int(np.count_nonzero(
+        fwd & ~stop_cells & footprints_meet(cells, cell_m, cell_m, slow_rect))) + waiting
     nearest = float(ahead[fwd].min()) if np.any(fwd) else None
     slow_reason = None
     if waiting and not in_stop:

@@ -365,3 +365,33 @@ def test_a_laser_return_cluster_confirms_on_the_grids_second_hit():
     slow = [core.perceive(f, VehicleState(0, 0), k * DT).verdict.in_slow > 0
             for k, f in enumerate(far)]
     assert slow.index(True) == 12          # 0.18 a frame from the grid's second hit on
+
+
+def test_a_track_whose_cells_reach_into_the_stop_zone_is_a_stop():
+    """#14: the zone test was written three times and the track decision's differed from the
+    cells': a thing whose cells' centres are 3 cm beyond the stop zone's end while the cells
+    (where its hits are) reach 2 cm into it. The cell decision stopped for it; the track
+    decision slowed for it, its tracks neither confirmed at once (stop_zone_strength) nor in
+    the stop zone. One test now (appliance/zones.py footprints_meet): both STOP on the same
+    cycle, through the decision core and the gate."""
+    zones = ZonesConfig(min_stop_m=2.02)          # at standstill: stop zone 2.6 .. 4.62 m
+    pts = np.array([[4.66, y] for y in (-0.25, -0.15, -0.05, 0.05, 0.15, 0.25)])  # 4.6-4.7
+
+    def run(cfg):
+        core = DecisionCore(cfg)
+        outs = []
+        for k in range(10):
+            pic = core.perceive({"stereo": Detections(points_xy=pts)}, VehicleState(k * DT, k),
+                                k * DT)
+            outs.append((pic, core.decide(k * DT, [], pic), core.gate.cause))
+        return outs
+
+    cells = run(Config(gate=GateConfig(hold_off_s=0.3), zones=zones))
+    tracks = run(dataclasses.replace(tracks_cfg(), zones=zones))
+    pic, out, cause = tracks[-1]
+    assert len(pic.objects) == 1 and pic.objects[0].x_m > 4.62 + 0.02   # its centre: outside
+    assert np.all(pic.cells_xy[:, 0] > 4.62)                            # its cells' centres too
+    assert [p.verdict.in_stop > 0 for p, _, _ in cells] == [False] + [True] * 9
+    assert [p.verdict.in_stop > 0 for p, _, _ in tracks] == [False] + [True] * 9
+    assert out.state is GateState.STOP and cause == "obstacle"
+    assert "track" in out.reason and "in the stop zone" in out.reason

@@ -113,3 +113,109 @@ def test_laser_pipeline_attitude_drops_ground_hits():
     better = LaserPipeline(LaserPipelineConfig(use_attitude=True, min_height_m=0.2)).process(
         SensorInputs(0, laser=scan, vehicle=vs(pitch=np.radians(5.0))))
     assert len(better.points_xy) == 0
+
+
+# --- the one zone test (appliance/zones.py footprints_meet, #14) ------------------------------
+STOP = {"x_min_m": 2.6, "x_max_m": 4.6, "half_width_m": 1.25}    # the stop zone at standstill
+
+
+def meets(x, y, length, width, yaw_deg=0.0):
+    from appliance.zones import footprint_meets
+    return footprint_meets(x, y, length, width, STOP, np.radians(yaw_deg))
+
+
+def test_a_footprint_meets_a_zone_when_any_part_of_it_is_inside():
+    assert meets(3.5, 0.0, 0.4, 0.4)                          # wholly inside
+    assert meets(4.64, 0.0, 0.1, 0.1)                         # a cell 4 cm beyond the far end
+    assert meets(4.7, 0.0, 0.3, 0.3)                          # centre 10 cm beyond, edge 5 cm in
+    assert not meets(4.66, 0.0, 0.1, 0.1)                     # wholly beyond: 1 cm out
+    assert meets(2.57, 0.0, 0.1, 0.1)                         # centre behind the front, edge in
+    assert not meets(2.54, 0.0, 0.1, 0.1)                     # behind the front
+    assert meets(3.5, 1.29, 0.1, 0.1) and meets(3.5, -1.29, 0.1, 0.1)   # over the side edges
+    assert not meets(3.5, 1.31, 0.1, 0.1) and not meets(3.5, -1.31, 0.1, 0.1)
+    assert meets(3.5, 0.0, 0.0, 0.0) and not meets(4.61, 0.0, 0.0, 0.0)  # a point: inside or not
+    big = meets(3.5, 0.0, 20.0, 20.0)                         # larger than the zone: covers it
+    assert big
+
+
+def test_a_footprint_that_only_touches_an_edge_does_not_meet_it():
+    """The grid's cells share their edges with a zone whose ends fall on the grid (the 2.0 m
+    standstill stop zone from a 2.6 m front, 0.1 m cells): a cell from 4.6 to 4.7 m holds hits
+    at x >= 4.6 only; whether it counted must not depend on rounding (4.65 - 0.05 is
+    4.6000000000000005)."""
+    x = -2.0 + 66.5 * 0.1                                     # the grid's cell centre, 4.65
+    assert not meets(x, 0.0, 0.1, 0.1)
+    assert not meets(-2.0 + 45.5 * 0.1, 0.0, 0.1, 0.1)        # 2.5 .. 2.6: behind the front
+    assert meets(x - 1e-6, 0.0, 0.1, 0.1)                     # a micrometre in is in
+
+
+def test_a_thing_beside_the_zone_does_not_meet_it():
+    assert not meets(3.5, 1.6, 0.5, 0.5)                      # its near side 1.35 m out
+    assert not meets(3.5, -1.6, 0.5, 0.5)
+    assert not meets(3.5, 1.6, 0.5, 0.6)                      # 1.30: 5 cm beside
+    assert meets(3.5, 1.6, 0.5, 0.8)                          # 1.20: 5 cm in
+
+
+def test_a_turned_footprint_meets_by_its_turned_corners_and_sides():
+    # a 2.0 x 0.2 m bar beside the zone (centre 2.0 m out): along x it stays out; turned
+    # across the path it reaches 1.0 m from the centre line
+    assert not meets(3.5, 2.0, 2.0, 0.2, yaw_deg=0.0)
+    assert meets(3.5, 2.0, 2.0, 0.2, yaw_deg=90.0)
+    assert meets(3.5, 2.0, 2.0, 0.2, yaw_deg=-90.0)
+    # 180 degrees is the same footprint as 0
+    assert meets(4.7, 0.0, 0.3, 0.3, yaw_deg=180.0) and not meets(3.5, 2.0, 2.0, 0.2, yaw_deg=180)
+    # off the zone's corner (4.6, 1.25): a thin bar along the corner's diagonal reaches in; the
+    # same bar turned square to it does not, though its axis-aligned box still overlaps the
+    # zone (only the footprint's own axes separate them)
+    cx, cy = 4.6 + 0.4, 1.25 + 0.4
+    assert meets(cx, cy, 2.0, 0.1, yaw_deg=45.0)
+    assert not meets(cx, cy, 2.0, 0.1, yaw_deg=135.0)
+    # a 1.0 x 1.0 m box centred 0.65 m beyond the far end: square, its edge is 0.15 m out;
+    # turned 45 degrees, its corner is 0.06 m in; 0.75 m beyond and turned, 0.04 m out
+    assert not meets(5.25, 0.0, 1.0, 1.0) and meets(5.25, 0.0, 1.0, 1.0, yaw_deg=45.0)
+    assert not meets(5.35, 0.0, 1.0, 1.0, yaw_deg=45.0)
+
+
+def test_footprints_meet_takes_one_size_and_yaw_per_footprint():
+    from appliance.zones import footprints_meet
+    xy = np.array([[4.7, 0.0], [4.7, 0.0], [3.5, 2.0], [3.5, 2.0]])
+    got = footprints_meet(xy, [0.3, 0.1, 2.0, 2.0], [0.3, 0.1, 0.2, 0.2], STOP,
+                          np.radians([0.0, 0.0, 0.0, 90.0]))
+    assert got.tolist() == [True, False, False, True]
+    assert footprints_meet(np.zeros((0, 2)), 0.1, 0.1, STOP).shape == (0,)
+
+
+def test_the_cells_the_tracks_and_the_truth_use_the_same_zone_test():
+    """The zone test was written three times (cells, tracks, truth) and they disagreed:
+    the same footprints through each, against the one function."""
+    from appliance.config import Config
+    from appliance.decision import assess_tracks
+    from appliance.evaluation import _rect_intersects
+    from appliance.tracking import TrackView
+    from appliance.zones import footprints_meet, zone_rects
+    z = ZonesConfig()
+    stop_rect, slow_rect = zone_rects(0.0, z)
+    rng = np.random.default_rng(14)
+    xy = np.column_stack([rng.uniform(1.5, 11.0, 400), rng.uniform(-2.0, 2.0, 400)])
+    cell = GridConfig().cell_m
+    want_stop = footprints_meet(xy, cell, cell, stop_rect)
+    want_slow = ~want_stop & footprints_meet(xy, cell, cell, slow_rect)
+    assert 20 < want_stop.sum() and 20 < want_slow.sum()
+    # the cell decision, one cell at a time
+    got = [(assess(p[None], 0.0, z, cell_m=cell).in_stop, assess(p[None], 0.0, z,
+            cell_m=cell).in_slow) for p in xy]
+    assert [a for a, _ in got] == want_stop.astype(int).tolist()
+    assert [b for _, b in got] == want_slow.astype(int).tolist()
+    # the track decision, footprint and cells
+    cfg = Config()
+    for p, s, w in zip(xy, want_stop, want_slow):
+        t = TrackView(id=1, x_m=p[0], y_m=p[1], length_m=cell, width_m=cell, height_m=1.0,
+                      vx_mps=0.0, vy_mps=0.0, confidence=0.9, sources=("geometry",),
+                      confirmed=True, coasting=False, hits=5, age_s=1.0)
+        v = assess_tracks([t], np.zeros((0, 2)), 0.0, cfg)
+        assert (v.in_stop, v.in_slow) == (int(s), int(w))
+        v = assess_tracks([t], p[None], 0.0, cfg, {1: p[None]})
+        assert (v.in_stop, v.in_slow) == (int(s), int(w))
+    # the truth side of eval
+    truth = [{"x_m": p[0], "y_m": p[1], "length_m": cell, "width_m": cell} for p in xy]
+    assert [_rect_intersects(o, stop_rect) for o in truth] == want_stop.tolist()

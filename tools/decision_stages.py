@@ -3,7 +3,7 @@ running the perception once per (run, pipeline) and the decision core many times
 
     python tools/decision_stages.py RUN[,RUN...] PIPELINE[+PIPELINE...] \
         '{"confirm_logodds": [1.5, 2.0]}' [--base '{"input": "occupied"}'] [--cells] \
-        [--cache DIR]
+        [--cache DIR] [--indices]
 
 Each pipeline's detections are recorded per frame the first time (``--cache``, default
 /tmp/fieldguard-decision-cache) by running ``fieldguard eval``'s own runner with the pipeline;
@@ -112,6 +112,8 @@ def main(argv=None) -> int:
                     help='JSON [grid] keys for every row, e.g. {"stop_at": 1.7}')
     ap.add_argument("--cells", action="store_true", help="add the cell decision first")
     ap.add_argument("--cache", default="/tmp/fieldguard-decision-cache")
+    ap.add_argument("--indices", action="store_true",
+                    help="add each run's false-stop and missed-stop frame indices")
     a = ap.parse_args(argv)
     runs, names = a.runs.split(","), a.pipelines.split("+")
     grid, base = json.loads(a.grid), json.loads(a.base)
@@ -132,7 +134,10 @@ def main(argv=None) -> int:
             row.append(f"{Path(run).name}: recall {f3(r['recall'])} path {f3(r['path_recall'])} "
                        f"fp-frames {r['false_positive_frames']}/{r['frames']} "
                        f"fp-cells {r['fp_cells_per_frame']:.1f} false-stop "
-                       f"{r['false_stop_frames']} missed-stop {r['missed_stop_frames']}")
+                       f"{r['false_stop_frames']} missed-stop {r['missed_stop_frames']}"
+                       + (f" (stop-zone {r['stop_zone_frames']}; false-stop at "
+                          f"{r['false_stop_frame_indices']}, missed at "
+                          f"{r['missed_stop_frame_indices']})" if a.indices else ""))
         label = "cells" if combo is None else json.dumps(dict(zip(keys, combo)))
         print(f"{label} | " + " | ".join(row) + f"  ({time.process_time() - t0:.0f} s CPU)",
               flush=True)
