@@ -1110,6 +1110,26 @@ class Soak:
         for inc, ss in segs.items():
             ov = [s["overruns"] for s in ss if s.get("overruns") is not None]
             overruns += max(ov) if ov else 0
+        # Where RSS steps: for each fault, the median RSS (anonymous) in the 15 s before its
+        # injection against the 15 s from 5 s after its recovery, same process only; a kind
+        # whose faults leave memory behind every time shows a mean step above the noise
+        rss_step = {}
+        for f in self.faults:
+            t_in, t_back = f.get("t_inject"), f.get("recovered_at")
+            if t_in is None or t_back is None:
+                continue
+            before = [x for x in self.samples if t_in - 15.0 <= x["t"] < t_in and "anon_mb" in x]
+            after = [x for x in self.samples
+                     if t_back + 5.0 <= x["t"] < t_back + 20.0 and "anon_mb" in x]
+            if len(before) < 5 or len(after) < 5 or \
+                    {x["inc"] for x in before} != {x["inc"] for x in after}:
+                continue
+            b = sorted(x["anon_mb"] for x in before)[len(before) // 2]
+            a = sorted(x["anon_mb"] for x in after)[len(after) // 2]
+            rss_step.setdefault(f["kind"], []).append(a - b)
+        rss_step = {k: {"n": len(v), "mean_mb": round(sum(v) / len(v), 3),
+                        "sum_mb": round(sum(v), 2)}
+                    for k, v in sorted(rss_step.items(), key=lambda kv: -sum(kv[1]))}
         by_kind = {}
         for g in out_faults:
             k = by_kind.setdefault(g["kind"], {"n": 0, "stop_cycles_mav": [], "recovery_s": [],
@@ -1155,6 +1175,7 @@ class Soak:
             "rss_longest_process_judged_s": round(best[-1]["t"] - best[0]["t"]) if best else 0,
             "rss_mb_max": round(max((x.get("rss_mb", 0.0) for x in self.samples), default=0), 1),
             "rss_mb_last": round(self.samples[-1].get("rss_mb", 0.0), 1) if self.samples else None,
+            "rss_anon_step_by_kind": rss_step,
             "fd_growth": fd_growth,
             "deadline_misses": overruns,
             "daemon_cpu_share": cpu_share,
