@@ -55,6 +55,7 @@ COLOUR_CHECK_ALPHA = 0.3
 COLOUR_CHECK_HYSTERESIS = 0.1
 COLOUR_CHECK_MIN_PIXELS = 100      # sampled ground-height pixels a frame needs to count
 COLOUR_CHECK_STRIDE = 4            # every 4th row and column of the frame is sampled
+GEOMETRY_RISE_MEMORY = 1000        # geometry alone: the rises of the last 1000 groups seen
 
 
 @dataclass(frozen=True)
@@ -135,15 +136,20 @@ class RgbdPipelineConfig(CueOptions):
                                       "colour_check_min_share (running mean) the model was "
                                       "trained somewhere else (the greenhouse model on a stubble "
                                       "field) and the pipeline decides on geometry alone: slope "
-                                      "and geometry_min_height_m, no colour, texture or depth "
+                                      "and geometry_min_rise_m, no colour, texture or depth "
                                       "holes; it says so in the log and in status")
     colour_check_min_share: float = _f(0.8, lo=0.0, hi=1.0,
                                        doc="the share of ground-height pixels the class model "
                                            "must explain for its colour classes to be used")
-    geometry_min_height_m: float = _f(0.4, lo=0.0, hi=3.0,
-                                      doc="geometry alone (the class model does not apply): a "
-                                          "group must rise this high above the ground plane, "
-                                          "judged on pixels with depth")
+    geometry_min_rise_m: float = _f(0.4, lo=0.0, hi=3.0,
+                                    doc="geometry alone (the class model does not apply): a "
+                                        "group must rise at least this far above its own foot "
+                                        "(5th to 95th percentile of its pixels' heights, pixels "
+                                        "with depth)")
+    geometry_rise_factor: float = _f(1.6, lo=0.0, hi=10.0,
+                                     doc="geometry alone: ... and this many times the 95th "
+                                         "percentile of the rises of the last 1000 groups seen "
+                                         "(the field's own crop residue; 0 = the minimum only)")
     cue_min_depth_valid: float = _f(0.5, lo=0.0, hi=1.0,
                                     doc="cue: a cell with less valid depth than this share "
                                         "is not used (a shiny object's cells hold only the "
@@ -233,13 +239,16 @@ class RgbdPipeline(Pipeline):
                          texture_contact_px=o.texture_contact_px, min_height_m=o.min_height_m,
                          raised_bottom_only=o.raised_bottom_only)
         # geometry alone (the class model does not explain the scene): every suspected pixel
-        # is a candidate, no class is traversable, a group must rise geometry_min_height_m
+        # is a candidate, no class is traversable (a group must also rise geometry_min_rise_m
+        # above its own foot: _rising)
         self.geometry_rule = dataclasses.replace(
             self.rule, traversable=(), ground_classes=(),
-            min_height_m=max(o.min_height_m, o.geometry_min_height_m))
+            min_height_m=o.min_height_m)
         self.colour_share: float | None = None   # running mean of the explained share
         self.colour_applies = True
         self.geometry_frames = 0                 # frames decided on geometry alone
+        self._rises = np.zeros(0, np.float32)    # geometry alone: recent groups' rises
+        self.geometry_rise_m: float | None = None   # ... and the rise this frame asked for
 
     # ------------------------------------------------------------------------------------------
     def process(self, inputs: SensorInputs) -> Detections:
@@ -253,7 +262,9 @@ class RgbdPipeline(Pipeline):
             "groups_learned": r.groups_learned,
             "texture_ran": r.texture_class is not None,
             "colour_model": "geometry-only" if r.geometry_only else "applies",
-            "colour_share": None if r.colour_share is None else round(r.colour_share, 3)})
+            "colour_share": None if r.colour_share is None else round(r.colour_share, 3),
+            "geometry_rise_m": None if not r.geometry_only or self.geometry_rise_m is None
+            else round(self.geometry_rise_m, 3)})
 
     def notes(self) -> dict:
         out = dict(self.cue.notes())
@@ -266,7 +277,9 @@ class RgbdPipeline(Pipeline):
         return (f"the class model explains {100 * (self.colour_share or 0.0):.0f} % of the "
                 f"ground in view (needs {100 * o.colour_check_min_share:.0f} %): trained "
                 f"elsewhere; deciding on geometry alone (slope, height >= "
-                f"{self.geometry_rule.min_height_m:.2f} m), no colour, texture or depth holes")
+                f"{self.geometry_rise_m or o.geometry_min_rise_m:.2f} m above its own foot, "
+                f"{o.geometry_rise_factor:g} x the field's usual), no colour, texture or depth "
+                f"holes")
 
     def _check_colour(self, color, depth, surface_all, height, cfull) -> float | None:
         """The colour-model check (``colour_check``): the share of this frame's level pixels at
@@ -400,12 +413,14 @@ class RgbdPipeline(Pipeline):
         tmap = None
         if geometry_only:
             # geometry alone: every suspected pixel is a candidate (no class), standing on low
-            # ground and rising geometry_min_height_m, judged on the pixels with depth (a
-            # pixel with no depth has no height)
+            # ground, min_height_m above it, and rising geometry_min_rise_m above its own foot,
+            # judged on the pixels with depth (a pixel with no depth has no height)
             self.geometry_frames += 1
             cmap = np.where(sus, np.int16(UNDEFINED), np.int16(NOT_CLASSIFIED))
             hv = np.where(depth_s > 0, height_c, np.float32(np.nan))
             d = decide(sus, surface, cmap, None, self.geometry_rule, hv, None, learned)
+            if d.n_colour:
+                d.colour, d.n_colour = self._rising(d.colour, hv)
         else:
             if o.raised_surfaces:
                 raised = level & ~sus & (height >= np.float32(max(o.min_height_m, 0.05))) & \
@@ -457,6 +472,50 @@ class RgbdPipeline(Pipeline):
         return RgbdResult(slope, sus, surface, cmap, tmap, col_obs, tex_obs, hole_obs, obs,
                           n_col, n_tex, n_holes, pts, d.raised, d.n_raised, d.learned,
                           d.n_learned, n_hole_pts, proj, geometry_only, share)
+
+    @staticmethod
+    def _group_rises(mask: np.ndarray, height: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(labels of the connected groups of ``mask``, per label the rise of the group: the
+        span of its pixels' heights (those not NaN, every 2nd row and column) from the 5th to
+        the 95th percentile, NaN for a group with fewer than 5 such pixels and for label 0).
+        The rise is above the group's own foot, wherever the ground under it is (the level
+        ground plane under the mount is wrong by the field's undulation)."""
+        n, labels = cv2.connectedComponents(mask.view(np.uint8), connectivity=8,
+                                            ltype=cv2.CV_32S)
+        rise = np.full(n, np.nan, np.float32)
+        ls, hs = labels[::2, ::2], height[::2, ::2]
+        sel = (ls > 0) & np.isfinite(hs)
+        lv, hv = ls[sel], hs[sel]
+        if len(lv):
+            order = np.lexsort((hv, lv))
+            lv, hv = lv[order], hv[order]
+            starts = np.searchsorted(lv, np.arange(n))
+            counts = np.bincount(lv, minlength=n)
+            has = np.flatnonzero(counts >= 5)
+            lo = hv[starts[has] + (counts[has] - 1) * 5 // 100]
+            hi = hv[starts[has] + (counts[has] - 1) * 95 // 100]
+            rise[has] = hi - lo
+        rise[0] = np.nan
+        return labels, rise
+
+    def _rising(self, mask: np.ndarray, height: np.ndarray) -> tuple[np.ndarray, int]:
+        """The groups of ``mask`` that rise more than the field's own crop residue: at least
+        ``geometry_min_rise_m``, and ``geometry_rise_factor`` times the 95th percentile of the
+        rises of the last GEOMETRY_RISE_MEMORY groups seen (this frame's included): the tufts
+        of a tall stubble are ordinary there; an obstacle is a rare, taller group."""
+        o: RgbdPipelineConfig = self.options
+        labels, rise = self._group_rises(mask, height)
+        seen = rise[np.isfinite(rise)]
+        if len(seen):
+            self._rises = np.concatenate([self._rises, seen])[-GEOMETRY_RISE_MEMORY:]
+        thr = o.geometry_min_rise_m
+        if len(self._rises):
+            thr = max(thr, o.geometry_rise_factor * float(np.percentile(self._rises, 95)))
+        self.geometry_rise_m = thr
+        with np.errstate(invalid="ignore"):
+            keep = rise >= np.float32(thr)
+        keep[0] = False
+        return keep[labels], int(keep.sum())
 
     @staticmethod
     def _depth_trim(mask: np.ndarray, depth: np.ndarray, span_m: float) -> np.ndarray:
