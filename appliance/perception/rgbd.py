@@ -150,6 +150,11 @@ class RgbdPipelineConfig(CueOptions):
                                      doc="geometry alone: ... and this many times the 95th "
                                          "percentile of the rises of the last 1000 groups seen "
                                          "(the field's own crop residue; 0 = the minimum only)")
+    geometry_max_rise_m: float = _f(0.8, lo=0.0, hi=5.0,
+                                    doc="geometry alone: a group rising this far is an obstacle "
+                                        "whatever the field's usual (0 = no cap): taller than "
+                                        "crop residue, so where everything is that tall (bush "
+                                        "rows) the box stops rather than sees nothing")
     cue_min_depth_valid: float = _f(0.5, lo=0.0, hi=1.0,
                                     doc="cue: a cell with less valid depth than this share "
                                         "is not used (a shiny object's cells hold only the "
@@ -502,7 +507,8 @@ class RgbdPipeline(Pipeline):
         """The groups of ``mask`` that rise more than the field's own crop residue: at least
         ``geometry_min_rise_m``, and ``geometry_rise_factor`` times the 95th percentile of the
         rises of the last GEOMETRY_RISE_MEMORY groups seen (this frame's included): the tufts
-        of a tall stubble are ordinary there; an obstacle is a rare, taller group."""
+        of a tall stubble are ordinary there; an obstacle is a rare, taller group. A group
+        rising ``geometry_max_rise_m`` always counts."""
         o: RgbdPipelineConfig = self.options
         labels, rise = self._group_rises(mask, height)
         seen = rise[np.isfinite(rise)]
@@ -511,6 +517,9 @@ class RgbdPipeline(Pipeline):
         thr = o.geometry_min_rise_m
         if len(self._rises):
             thr = max(thr, o.geometry_rise_factor * float(np.percentile(self._rises, 95)))
+        if o.geometry_max_rise_m > 0:
+            # however tall the field's usual groups, a group this tall is never the field's
+            thr = min(thr, max(o.geometry_max_rise_m, o.geometry_min_rise_m))
         self.geometry_rise_m = thr
         with np.errstate(invalid="ignore"):
             keep = rise >= np.float32(thr)
