@@ -521,7 +521,7 @@ def evaluate_run(path: str | os.PathLike, pipeline: str | None = None, config=No
                 progress(i + 1, n)
         # what the pipelines say about themselves at the end (e.g. rgbd: its class model does
         # not explain the scene, so it decided on geometry alone)
-        notes = pipe.notes()
+        notes = pipe.notes() if hasattr(pipe, "notes") else {}
         geometry_frames = {p.name: p.geometry_frames for p in (parts or [pipe])
                            if hasattr(p, "geometry_frames")}
     finally:
