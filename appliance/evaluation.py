@@ -505,6 +505,11 @@ def evaluate_run(path: str | os.PathLike, pipeline: str | None = None, config=No
                                       ensure_ascii=False) + "\n")
             if progress is not None:
                 progress(i + 1, n)
+        # what the pipelines say about themselves at the end (e.g. rgbd: its class model does
+        # not explain the scene, so it decided on geometry alone)
+        notes = pipe.notes() if hasattr(pipe, "notes") else {}
+        geometry_frames = {p.name: p.geometry_frames for p in (parts or [pipe])
+                           if hasattr(p, "geometry_frames")}
     finally:
         pipe.close()
         if sink is not None:
@@ -520,6 +525,9 @@ def evaluate_run(path: str | os.PathLike, pipeline: str | None = None, config=No
                 "frames_corrupt_indices": [k for k, _ in corrupt],
                 "frames_corrupt_errors": [e for _, e in corrupt[:20]],
                 "run_warnings": list(reader.warnings),
+                "pipeline_notes": notes,
+                # frames a pipeline with a class model decided on geometry alone (rgbd)
+                "geometry_only_frames": geometry_frames,
                 "zone": zone.to_dict(), "config": getattr(cfg, "source", None)})
     return res
 
@@ -545,6 +553,17 @@ def format_table(result: dict) -> str:
                 head.append(f"not scored: {len(idx)} frame(s) with {what} (index {shown})")
         for w in result.get("run_warnings") or []:
             head.append(f"warning: {w}")
+        notes = result.get("pipeline_notes") or {}
+        if notes and not any(isinstance(v, dict) for v in notes.values()):
+            notes = {result.get("pipeline", "?"): notes}        # one pipeline
+        for name, d in notes.items():
+            for k, v in (d.items() if isinstance(d, dict) else [("", d)]):
+                if (k, v) != ("cue", "off"):
+                    head.append(f"note: {name}: {v}")
+        for name, k in (result.get("geometry_only_frames") or {}).items():
+            if k:
+                head.append(f"note: {name}: {k}/{result.get('frames_total', '?')} frames "
+                            f"decided on geometry alone")
     cols = ("class", "obstacle-frames", "detected", "recall", "obstacles det/all")
     rows = []
     for cls, r in result.get("per_class", {}).items():

@@ -27,6 +27,8 @@ The class model is a file (``model``), read once at construction by appliance.rg
 """
 from __future__ import annotations
 
+import dataclasses
+import logging
 import math
 from dataclasses import dataclass
 
@@ -40,10 +42,20 @@ from .candidates import cluster_candidates
 from .cue import CueOptions, LearnedCue
 from .rgbd_classes import RgbdClassModel
 from .rgbd_colour import COLOUR_SPACES, ColourClassifier, colour_features
-from .rgbd_decision import (NOT_CLASSIFIED, Rule, decide, not_traversable, obstacle_groups,
-                            touching_ground)
+from .rgbd_decision import (NOT_CLASSIFIED, UNDEFINED, Rule, decide, not_traversable,
+                            obstacle_groups, touching_ground)
 from .rgbd_slope import height_map, slope_map, steep_map, suspected_from
 from .rgbd_texture import classify_histograms, lbp_codes, to_grey, window_histograms, window_index
+
+log = logging.getLogger("fieldguard.perception.rgbd")
+
+# the colour-model check: the share's running mean weighs each new frame by this, and a model
+# found not to apply must be back above its minimum share by this margin before it is used again
+COLOUR_CHECK_ALPHA = 0.3
+COLOUR_CHECK_HYSTERESIS = 0.1
+COLOUR_CHECK_MIN_PIXELS = 100      # sampled ground-height pixels a frame needs to count
+COLOUR_CHECK_STRIDE = 4            # every 4th row and column of the frame is sampled
+GEOMETRY_RISE_MEMORY = 1000        # geometry alone: the rises of the last 1000 groups seen
 
 
 @dataclass(frozen=True)
@@ -117,6 +129,32 @@ class RgbdPipelineConfig(CueOptions):
                                                     "traversable ones (the greenhouse cover: "
                                                     "beyond the sensor's range)")
     use_vehicle_pitch: bool = _f(False, doc="add the vehicle's pitch to the mount pitch")
+    colour_check: bool = _f(True, doc="judge on every frame whether the class model explains "
+                                      "the ground in view: the share of level pixels at ground "
+                                      "height (under ground_max_height_m, else 0.25 m) within "
+                                      "colour_threshold of one of its classes. Below "
+                                      "colour_check_min_share (running mean) the model was "
+                                      "trained somewhere else (the greenhouse model on a stubble "
+                                      "field) and the pipeline decides on geometry alone: slope "
+                                      "and geometry_min_rise_m, no colour, texture or depth "
+                                      "holes; it says so in the log and in status")
+    colour_check_min_share: float = _f(0.8, lo=0.0, hi=1.0,
+                                       doc="the share of ground-height pixels the class model "
+                                           "must explain for its colour classes to be used")
+    geometry_min_rise_m: float = _f(0.4, lo=0.0, hi=3.0,
+                                    doc="geometry alone (the class model does not apply): a "
+                                        "group must rise at least this far above its own foot "
+                                        "(5th to 95th percentile of its pixels' heights, pixels "
+                                        "with depth)")
+    geometry_rise_factor: float = _f(1.6, lo=0.0, hi=10.0,
+                                     doc="geometry alone: ... and this many times the 95th "
+                                         "percentile of the rises of the last 1000 groups seen "
+                                         "(the field's own crop residue; 0 = the minimum only)")
+    geometry_max_rise_m: float = _f(0.8, lo=0.0, hi=5.0,
+                                    doc="geometry alone: a group rising this far is an obstacle "
+                                        "whatever the field's usual (0 = no cap): taller than "
+                                        "crop residue, so where everything is that tall (bush "
+                                        "rows) the box stops rather than sees nothing")
     cue_min_depth_valid: float = _f(0.5, lo=0.0, hi=1.0,
                                     doc="cue: a cell with less valid depth than this share "
                                         "is not used (a shiny object's cells hold only the "
@@ -166,6 +204,8 @@ class RgbdResult:
     groups_learned: int = 0
     hole_points: int = 0          # the last ``hole_points`` of points_xy are the holes'
     projected: np.ndarray | None = None   # the obstacle pixels that went to 3-D
+    geometry_only: bool = False   # the class model did not explain the scene: slope and height
+    colour_share: float | None = None   # the frame's share of ground-height pixels it explained
 
 
 class RgbdPipeline(Pipeline):
@@ -203,6 +243,17 @@ class RgbdPipeline(Pipeline):
                          if o.bottom_grounded else 0,
                          texture_contact_px=o.texture_contact_px, min_height_m=o.min_height_m,
                          raised_bottom_only=o.raised_bottom_only)
+        # geometry alone (the class model does not explain the scene): every suspected pixel
+        # is a candidate, no class is traversable (a group must also rise geometry_min_rise_m
+        # above its own foot: _rising)
+        self.geometry_rule = dataclasses.replace(
+            self.rule, traversable=(), ground_classes=(),
+            min_height_m=o.min_height_m)
+        self.colour_share: float | None = None   # running mean of the explained share
+        self.colour_applies = True
+        self.geometry_frames = 0                 # frames decided on geometry alone
+        self._rises = np.zeros(0, np.float32)    # geometry alone: recent groups' rises
+        self.geometry_rise_m: float | None = None   # ... and the rise this frame asked for
 
     # ------------------------------------------------------------------------------------------
     def process(self, inputs: SensorInputs) -> Detections:
@@ -214,10 +265,59 @@ class RgbdPipeline(Pipeline):
             "groups_colour": r.groups_colour, "groups_texture": r.groups_texture,
             "groups_holes": r.groups_holes, "groups_raised": r.groups_raised,
             "groups_learned": r.groups_learned,
-            "texture_ran": r.texture_class is not None})
+            "texture_ran": r.texture_class is not None,
+            "colour_model": "geometry-only" if r.geometry_only else "applies",
+            "colour_share": None if r.colour_share is None else round(r.colour_share, 3),
+            "geometry_rise_m": None if not r.geometry_only or self.geometry_rise_m is None
+            else round(self.geometry_rise_m, 3)})
 
     def notes(self) -> dict:
-        return self.cue.notes()
+        out = dict(self.cue.notes())
+        if not self.colour_applies:
+            out["colour_model"] = self._not_applicable_text()
+        return out
+
+    def _not_applicable_text(self) -> str:
+        o: RgbdPipelineConfig = self.options
+        return (f"the class model explains {100 * (self.colour_share or 0.0):.0f} % of the "
+                f"ground in view (needs {100 * o.colour_check_min_share:.0f} %): trained "
+                f"elsewhere; deciding on geometry alone (slope, height >= "
+                f"{self.geometry_rise_m or o.geometry_min_rise_m:.2f} m above its own foot, "
+                f"{o.geometry_rise_factor:g} x the field's usual), no colour, texture or depth "
+                f"holes")
+
+    def _check_colour(self, color, depth, surface_all, height, cfull) -> float | None:
+        """The colour-model check (``colour_check``): the share of this frame's level pixels at
+        ground height (every COLOUR_CHECK_STRIDE-th row and column) that the model puts within
+        ``colour_threshold`` of one of its classes; folded into a running mean that
+        decides, with hysteresis, whether the colour classes are used. None: too few ground
+        pixels in view (the state does not change)."""
+        o: RgbdPipelineConfig = self.options
+        st = COLOUR_CHECK_STRIDE
+        gmax = o.ground_max_height_m if o.ground_max_height_m > 0 else 0.25
+        g = surface_all[::st, ::st] & (depth[::st, ::st] > 0) & \
+            (height[::st, ::st] < np.float32(gmax))
+        if int(g.sum()) < COLOUR_CHECK_MIN_PIXELS:
+            return None
+        if cfull is not None:
+            cls = cfull[::st, ::st][g]
+        else:                    # the lookup table is not built yet: the same classes, per pixel
+            cls = self.colour.classify(colour_features(color[::st, ::st][g], o.colour_space))
+        share = float((cls >= 0).mean())          # UNDEFINED: no class near enough
+        m = share if self.colour_share is None else \
+            (1 - COLOUR_CHECK_ALPHA) * self.colour_share + COLOUR_CHECK_ALPHA * share
+        self.colour_share = m
+        was = self.colour_applies
+        if was and m < o.colour_check_min_share:
+            self.colour_applies = False
+        elif not was and m >= min(1.0, o.colour_check_min_share + COLOUR_CHECK_HYSTERESIS):
+            self.colour_applies = True
+        if was and not self.colour_applies:
+            log.warning("rgbd: %s", self._not_applicable_text())
+        elif not was and self.colour_applies:
+            log.warning("rgbd: the class model explains %.0f %% of the ground in view again: "
+                        "colour, texture and depth holes back on", 100 * m)
+        return share
 
     def _candidates(self, inputs: SensorInputs, r: RgbdResult) -> tuple:
         """The frame's obstacle groups as candidates (issue #14): the obstacle pixels (every
@@ -243,7 +343,8 @@ class RgbdPipeline(Pipeline):
             p = np.stack([x, y, z], axis=1).astype(np.float64)
             pv = p @ mount.camera_to_vehicle().T + mount.position
             flags = {}
-            for name, m in (("colour", r.colour_obstacles), ("texture", r.texture_obstacles),
+            for name, m in (("colour", None if r.geometry_only else r.colour_obstacles),
+                            ("texture", r.texture_obstacles),
                             ("cue", r.learned_obstacles), ("geometry", r.raised_obstacles)):
                 if m is not None:
                     flags[name] = m[v, u]
@@ -295,36 +396,55 @@ class RgbdPipeline(Pipeline):
             # our addition: bush tops are level too, but an obstacle stands on the ground
             surface &= height < np.float32(o.ground_max_height_m)
 
-        raised = None
-        if o.raised_surfaces:
-            raised = level & ~sus & (height >= np.float32(max(o.min_height_m, 0.05))) & \
-                (height < np.float32(o.raised_max_height_m))
-        want = sus if raised is None else sus | raised
-
-        # 2. colour classes of the suspected pixels (the whole frame through the lookup table:
-        # one gather per pixel is cheaper than picking the suspected ones out)
-        cfull = None
-        if self.colour.lut_ready():
-            cfull = self.colour.classify_image(color)
-            cmap = np.where(want, cfull, np.int16(NOT_CLASSIFIED))
-        else:
-            cmap = np.full(sus.shape, NOT_CLASSIFIED, np.int16)
-            cmap[want] = self.colour.classify(colour_features(color[want], o.colour_space))
+        # 2. colour classes (the whole frame through the lookup table: one gather per pixel is
+        # cheaper than picking the suspected ones out)
+        cfull = self.colour.classify_image(color) if self.colour.lut_ready() else None
+        # does the class model explain the ground in view? (else: geometry alone)
+        share = None
+        if o.colour_check:
+            if height is None:        # (the paper's rule does not need the height otherwise)
+                height_c = height_map(depth_s, cam.fy, cam.cy, pitch, mount.z_m)
+            else:
+                height_c = height
+            share = self._check_colour(color, depth_s, surface, height_c, cfull)
+        geometry_only = not self.colour_applies
 
         # beyond the paper: the learned cue's obstacle-like cells (issue #8)
         learned = self.cue.mask(color, sus.shape, 0, o.cue_open_cells, o.cue_erode_px,
                                 depth, o.cue_min_depth_valid) \
             if self.cue.enabled and sus.any() else None
-        # 3. texture, and 4. the decision
+
+        raised = None
         tmap = None
-        if o.texture == "always":
-            tmap = self._texture_map(color, sus)
-            d = decide(sus, surface, cmap, tmap, self.rule, height, raised, learned)
+        if geometry_only:
+            # geometry alone: every suspected pixel is a candidate (no class), standing on low
+            # ground, min_height_m above it, and rising geometry_min_rise_m above its own foot,
+            # judged on the pixels with depth (a pixel with no depth has no height)
+            self.geometry_frames += 1
+            cmap = np.where(sus, np.int16(UNDEFINED), np.int16(NOT_CLASSIFIED))
+            hv = np.where(depth_s > 0, height_c, np.float32(np.nan))
+            d = decide(sus, surface, cmap, None, self.geometry_rule, hv, None, learned)
+            if d.n_colour:
+                d.colour, d.n_colour = self._rising(d.colour, hv)
         else:
-            d = decide(sus, surface, cmap, None, self.rule, height, raised, learned)
-            if o.texture == "after-colour" and d.n_colour > 0:
+            if o.raised_surfaces:
+                raised = level & ~sus & (height >= np.float32(max(o.min_height_m, 0.05))) & \
+                    (height < np.float32(o.raised_max_height_m))
+            want = sus if raised is None else sus | raised
+            if cfull is not None:
+                cmap = np.where(want, cfull, np.int16(NOT_CLASSIFIED))
+            else:
+                cmap = np.full(sus.shape, NOT_CLASSIFIED, np.int16)
+                cmap[want] = self.colour.classify(colour_features(color[want], o.colour_space))
+            # 3. texture, and 4. the decision
+            if o.texture == "always":
                 tmap = self._texture_map(color, sus)
                 d = decide(sus, surface, cmap, tmap, self.rule, height, raised, learned)
+            else:
+                d = decide(sus, surface, cmap, None, self.rule, height, raised, learned)
+                if o.texture == "after-colour" and d.n_colour > 0:
+                    tmap = self._texture_map(color, sus)
+                    d = decide(sus, surface, cmap, tmap, self.rule, height, raised, learned)
         col_obs, tex_obs, n_col, n_tex = d.colour, d.texture, d.n_colour, d.n_texture
         if d.learned is not None and d.n_learned and o.cue_depth_span_m > 0:
             d.learned = self._depth_trim(d.learned, depth, o.cue_depth_span_m)
@@ -346,7 +466,8 @@ class RgbdPipeline(Pipeline):
         hole_obs = None
         n_holes = 0
         n_hole_pts = 0
-        if o.holes:
+        if o.holes and not geometry_only:
+            # (a hole's rule needs colour: without it the far view and the sky are holes)
             hole_obs, n_holes, hpts = self._holes(color, depth, surface, cam, mount, pitch, lo, hi,
                                                   cfull)
             if len(hpts):
@@ -355,7 +476,55 @@ class RgbdPipeline(Pipeline):
             obs = obs | hole_obs
         return RgbdResult(slope, sus, surface, cmap, tmap, col_obs, tex_obs, hole_obs, obs,
                           n_col, n_tex, n_holes, pts, d.raised, d.n_raised, d.learned,
-                          d.n_learned, n_hole_pts, proj)
+                          d.n_learned, n_hole_pts, proj, geometry_only, share)
+
+    @staticmethod
+    def _group_rises(mask: np.ndarray, height: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(labels of the connected groups of ``mask``, per label the rise of the group: the
+        span of its pixels' heights (those not NaN, every 2nd row and column) from the 5th to
+        the 95th percentile, NaN for a group with fewer than 5 such pixels and for label 0).
+        The rise is above the group's own foot, wherever the ground under it is (the level
+        ground plane under the mount is wrong by the field's undulation)."""
+        n, labels = cv2.connectedComponents(mask.view(np.uint8), connectivity=8,
+                                            ltype=cv2.CV_32S)
+        rise = np.full(n, np.nan, np.float32)
+        ls, hs = labels[::2, ::2], height[::2, ::2]
+        sel = (ls > 0) & np.isfinite(hs)
+        lv, hv = ls[sel], hs[sel]
+        if len(lv):
+            order = np.lexsort((hv, lv))
+            lv, hv = lv[order], hv[order]
+            starts = np.searchsorted(lv, np.arange(n))
+            counts = np.bincount(lv, minlength=n)
+            has = np.flatnonzero(counts >= 5)
+            lo = hv[starts[has] + (counts[has] - 1) * 5 // 100]
+            hi = hv[starts[has] + (counts[has] - 1) * 95 // 100]
+            rise[has] = hi - lo
+        rise[0] = np.nan
+        return labels, rise
+
+    def _rising(self, mask: np.ndarray, height: np.ndarray) -> tuple[np.ndarray, int]:
+        """The groups of ``mask`` that rise more than the field's own crop residue: at least
+        ``geometry_min_rise_m``, and ``geometry_rise_factor`` times the 95th percentile of the
+        rises of the last GEOMETRY_RISE_MEMORY groups seen (this frame's included): the tufts
+        of a tall stubble are ordinary there; an obstacle is a rare, taller group. A group
+        rising ``geometry_max_rise_m`` always counts."""
+        o: RgbdPipelineConfig = self.options
+        labels, rise = self._group_rises(mask, height)
+        seen = rise[np.isfinite(rise)]
+        if len(seen):
+            self._rises = np.concatenate([self._rises, seen])[-GEOMETRY_RISE_MEMORY:]
+        thr = o.geometry_min_rise_m
+        if len(self._rises):
+            thr = max(thr, o.geometry_rise_factor * float(np.percentile(self._rises, 95)))
+        if o.geometry_max_rise_m > 0:
+            # however tall the field's usual groups, a group this tall is never the field's
+            thr = min(thr, max(o.geometry_max_rise_m, o.geometry_min_rise_m))
+        self.geometry_rise_m = thr
+        with np.errstate(invalid="ignore"):
+            keep = rise >= np.float32(thr)
+        keep[0] = False
+        return keep[labels], int(keep.sum())
 
     @staticmethod
     def _depth_trim(mask: np.ndarray, depth: np.ndarray, span_m: float) -> np.ndarray:
