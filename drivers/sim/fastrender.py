@@ -289,13 +289,16 @@ def march(kind, G, gp, tp, bp, tile77, top_m, obs, ocols, C, f2x, f2y, r2x, r2y,
           cyv, Wv, Hv, t, h_out, m_out, jhit, rmin):
     """_march with its scratch array."""
     ks = np.empty(max(obs.shape[0], 1), np.int64)
+    ift = np.empty(t.shape[0])                     # fy / t: a multiplication per sample
+    for j in range(t.shape[0]):
+        ift[j] = fy / t[j]
     _march(kind, G, gp, tp, bp, tile77, top_m, obs, ocols, C, f2x, f2y, r2x, r2y, fx, fy, cxv,
-           cyv, Wv, Hv, t, h_out, m_out, jhit, rmin, ks)
+           cyv, Wv, Hv, t, h_out, m_out, jhit, rmin, ks, ift)
 
 
 @njit(**NO_NRT)
 def _march(kind, G, gp, tp, bp, tile77, top_m, obs, ocols, C, f2x, f2y, r2x, r2y, fx, fy, cxv,
-           cyv, Wv, Hv, t, h_out, m_out, jhit, rmin, ks):
+           cyv, Wv, Hv, t, h_out, m_out, jhit, rmin, ks, ift):
     """Per column: heights/materials at the samples (NaN where not evaluated: cannot be seen,
     or every needed row is already covered) and jhit[r, c] = the first sample that covers
     pixel row r (len(t): none, sky). rmin[c]: the topmost row of column c the real camera
@@ -336,7 +339,7 @@ def _march(kind, G, gp, tp, bp, tile77, top_m, obs, ocols, C, f2x, f2y, r2x, r2y
                             mobs = 16 + int(obs[k, OCLS + 1])
             g = ground(G, gp, x, y)
             bound = max(g + top_m, hobs)
-            rowb = cyv - fy * (bound - C[2]) / tj
+            rowb = cyv - (bound - C[2]) * ift[j]
             if j > 0 and (rowb >= cm or rowb >= Hv):   # hidden, or below the image
                 h_out[c, j] = np.nan               # cannot be seen
                 m_out[c, j] = 0
@@ -352,7 +355,7 @@ def _march(kind, G, gp, tp, bp, tile77, top_m, obs, ocols, C, f2x, f2y, r2x, r2y
                 mm = mobs
             h_out[c, j] = hh
             m_out[c, j] = mm
-            row = cyv - fy * (hh - C[2]) / tj
+            row = cyv - (hh - C[2]) * ift[j]
             if row < cm:
                 cm = row
                 q = math.ceil(cm)
@@ -555,9 +558,12 @@ def _shade(kind, G, gp, tp, bp, tile77, obs, salt, C, f2x, f2y, r2x, r2y, fx, fy
                 gf = dhA - a * gr
                 gx = gf * f2x + gr * r2x
                 gy = gf * f2y + gr * r2y
-                g = math.sqrt(gx * gx + gy * gy)
-                s = min(1.0, 3.0 / max(g, 1e-6))
-                nx, ny = -gx * s, -gy * s
+                g2 = gx * gx + gy * gy
+                if g2 <= 9.0:                      # min(1, 3 / |g|) = 1: no sqrt, no division
+                    nx, ny = -gx, -gy
+                else:
+                    s = 3.0 / math.sqrt(g2)
+                    nx, ny = -gx * s, -gy * s
             elif side:
                 ddx, ddy = -dxc, -dyc
                 dn = math.sqrt(ddx * ddx + ddy * ddy)
