@@ -168,22 +168,19 @@ def ground(G, gp, x, y):
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FM)
-def tuft(tp, x, y):
-    """Stubble tuft height above the ground (world._tufts). tp = (row_off, row_spacing,
-    tuft_spacing, salt51, salt5A, height_scale, gap)."""
-    row_off, rs, ts = tp[0], tp[1], tp[2]
-    kf = math.floor((y - row_off) / rs + 0.5)
-    cy0 = kf * rs + row_off
-    if abs(y - cy0) > 0.1265:                    # jitter 0.04 + largest radius 0.085
-        return 0.0
-    jf = math.floor(x / ts)
+def tuft_cell(tp, kf, jf, cy0):
+    """The tuft of row kf, place jf: (hash, centre x, centre y, radius)."""
+    ts = tp[2]
     h = hash2(kf, jf, np.int64(tp[3]))
     cx = (jf + 0.5) * ts + (unit(h, 1) - 0.5) * 0.05
     cy = cy0 + (unit(h, 2) - 0.5) * 0.08
     r = 0.045 + unit(h, 3) * 0.04
-    d2 = ((x - cx) ** 2 + (y - cy) ** 2) / (r * r)
-    if d2 >= 1.0:
-        return 0.0
+    return h, cx, cy, r
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FM)
+def tuft_top(tp, h, x, y, d2):
+    """The tuft's height at a point inside its disc (d2 < 1); 0 where the row has a gap."""
     u4 = unit(h, 4)
     if u4 < tp[6]:
         return 0.0
@@ -193,6 +190,23 @@ def tuft(tp, x, y):
     height *= tp[5]
     rag = unit(hash2(math.floor(x * 50.0), math.floor(y * 50.0), np.int64(tp[4])), 0)
     return height * math.sqrt(math.sqrt(1.0 - d2)) * (0.55 + 0.45 * rag)
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FM)
+def tuft(tp, x, y):
+    """Stubble tuft height above the ground (world._tufts). tp = (row_off, row_spacing,
+    tuft_spacing, salt51, salt5A, height_scale, gap)."""
+    row_off, rs, ts = tp[0], tp[1], tp[2]
+    kf = math.floor((y - row_off) / rs + 0.5)
+    cy0 = kf * rs + row_off
+    if abs(y - cy0) > 0.1265:                    # jitter 0.04 + largest radius 0.085
+        return 0.0
+    jf = math.floor(x / ts)
+    h, cx, cy, r = tuft_cell(tp, kf, jf, cy0)
+    d2 = ((x - cx) ** 2 + (y - cy) ** 2) / (r * r)
+    if d2 >= 1.0:
+        return 0.0
+    return tuft_top(tp, h, x, y, d2)
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FM)
@@ -305,6 +319,11 @@ def _march(kind, G, gp, tp, bp, tile77, top_m, obs, ocols, C, f2x, f2y, r2x, r2y
     needs (the march of a column ends once it is covered)."""
     S = t.shape[0]
     no = obs.shape[0]
+    row_off, rs, ts = tp[0], tp[1], tp[2]
+    ck = np.int64(-(1 << 62))                      # the cached tuft cell (row, place)
+    cj = np.int64(-(1 << 62))
+    ch = np.int64(0)
+    ccx, ccy, cr = 0.0, 0.0, 1.0
     for c in range(Wv):
         a = (c - cxv) / fx
         dxc = f2x + a * r2x
@@ -345,7 +364,20 @@ def _march(kind, G, gp, tp, bp, tile77, top_m, obs, ocols, C, f2x, f2y, r2x, r2y
                 m_out[c, j] = 0
                 continue
             if kind == 0:
-                tt = tuft(tp, x, y)
+                # tuft(tp, x, y) with the last tuft's cell kept: consecutive samples of a
+                # column often fall on the same tuft place (same arithmetic, fewer hashes)
+                kf = math.floor((y - row_off) / rs + 0.5)
+                cy0 = kf * rs + row_off
+                tt = 0.0
+                if abs(y - cy0) <= 0.1265:
+                    jf = math.floor(x / ts)
+                    if kf != ck or jf != cj:
+                        ch, ccx, ccy, cr = tuft_cell(tp, kf, jf, cy0)
+                        ck = kf
+                        cj = jf
+                    d2 = ((x - ccx) ** 2 + (y - ccy) ** 2) / (cr * cr)
+                    if d2 < 1.0:
+                        tt = tuft_top(tp, ch, x, y, d2)
                 hh = g + tt
                 mm = 1 if tt > 0.0 else 0
             else:
