@@ -872,6 +872,11 @@ def laser(kind, G, gp, tp, bp, tile77, max_terrain, obs, O, dirs, t, range_max, 
     N = dirs.shape[0]
     S = t.shape[0]
     no = obs.shape[0]
+    row_off, rs, ts = tp[0], tp[1], tp[2]
+    ck = np.int64(-(1 << 62))                      # the cached tuft cell (as in _march)
+    cj = np.int64(-(1 << 62))
+    ch = np.int64(0)
+    ccx, ccy, cr = 0.0, 0.0, 1.0
     for b in range(N):
         dxb, dyb, dzb = dirs[b, 0], dirs[b, 1], dirs[b, 2]
         best = np.inf
@@ -886,7 +891,22 @@ def laser(kind, G, gp, tp, bp, tile77, max_terrain, obs, O, dirs, t, range_max, 
             yb = O[1] + dyb * tj
             if z > coarse_max(Gc, gp, xb, yb) + top_m:
                 continue
-            hh, _ = terrain(kind, G, gp, tp, bp, tile77, xb, yb)
+            if kind == 0:
+                # terrain() = ground + tuft(), the tuft's cell kept between samples
+                hh = ground(G, gp, xb, yb)
+                kf = math.floor((yb - row_off) / rs + 0.5)
+                cy0 = kf * rs + row_off
+                if abs(yb - cy0) <= 0.1265:
+                    jf = math.floor(xb / ts)
+                    if kf != ck or jf != cj:
+                        ch, ccx, ccy, cr = tuft_cell(tp, kf, jf, cy0)
+                        ck = kf
+                        cj = jf
+                    d2 = ((xb - ccx) ** 2 + (yb - ccy) ** 2) / (cr * cr)
+                    if d2 < 1.0:
+                        hh += tuft_top(tp, ch, xb, yb, d2)
+            else:
+                hh, _ = terrain(kind, G, gp, tp, bp, tile77, xb, yb)
             if hh >= z:
                 best = tj
                 break
