@@ -834,23 +834,27 @@ def albedo(kind, G, gp, tp, bp, tile77, obs, salt, x, y, z, pm, foot, tex_grass,
 # exposure, laser
 # ---------------------------------------------------------------------------------------------
 @njit(**NO_NRT)
-def expose(rad, pool, dy, dx, flip, night, out):
+def expose(rad, pool, dy, dx, night, out):
+    """Radiance -> 8 bit with the noise pool's window at (dy, dx) (render.expose passes the
+    channel-reversed pool when it flips). One flat loop over each row's W*3 values (LLVM
+    vectorises it: ~7x faster than the per-channel loop with the flip in the index)."""
     H, W = rad.shape[0], rad.shape[1]
+    if night:
+        A = np.float32(4.0)
+        B = np.float32(0.6)
+    else:
+        A = np.float32(1.2)
+        B = np.float32(0.12)
     for r in range(H):
-        for c in range(W):
-            for q in range(3):
-                x = rad[r, c, q] * np.float32(255.0)
-                if night:
-                    sg = np.float32(4.0) + math.sqrt(max(x, 0.0)) * np.float32(0.6)
-                else:
-                    sg = np.float32(1.2) + math.sqrt(max(x, 0.0)) * np.float32(0.12)
-                n = pool[dy + r, dx + c, 2 - q if flip else q]
-                v = x + sg * n + np.float32(0.5)
-                if v < 0:
-                    v = 0.0
-                elif v > 255:
-                    v = 255.0
-                out[r, c, q] = np.uint8(v)
+        rr = rad[r].reshape(W * 3)
+        pr = pool[dy + r, dx:dx + W].reshape(W * 3)
+        orow = out[r].reshape(W * 3)
+        for i in range(W * 3):
+            x = rr[i] * np.float32(255.0)
+            sg = A + math.sqrt(max(x, 0.0)) * B
+            v = x + sg * pr[i] + np.float32(0.5)
+            v = min(max(v, 0.0), 255.0)
+            orow[i] = np.uint8(v)
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FM)

