@@ -541,8 +541,18 @@ def expose(radiance: np.ndarray, rng: np.random.Generator, mode: str) -> np.ndar
             _NOISE_POOL[key] = pool
         dy, dx = int(rng.integers(0, 97)), int(rng.integers(0, 89))
         flip = bool(rng.integers(0, 2))
+        if flip:
+            # the channel-reversed pool as its own contiguous array (cached), so the kernel
+            # reads every row straight through and vectorises (0.75 instead of 5.3 ms a
+            # 640x512 image, the same bytes)
+            fkey = (h, w, "flipped")
+            pf = _NOISE_POOL.get(fkey)
+            if pf is None:
+                pf = np.ascontiguousarray(pool[:, :, ::-1])
+                _NOISE_POOL[fkey] = pf
+            pool = pf
         out = np.empty((h, w, 3), np.uint8)
-        fr.expose(np.ascontiguousarray(radiance, np.float32), pool, dy, dx, flip,
+        fr.expose(np.ascontiguousarray(radiance, np.float32), pool, dy, dx,
                   mode == "night-strobe", out)
         return out
     x = radiance * np.float32(255.0)
@@ -613,17 +623,28 @@ def _kinect_depth_fast(view, world, rng, min_range, max_range, fx):
     return out
 
 
-def cast_laser(world: World, origin: np.ndarray, dirs: np.ndarray, range_max: float,
-               step_min: float = 0.01, rel_step: float = 0.004, step_max: float = 0.04) -> np.ndarray:
-    """Ranges (NaN = no return) of beams from ``origin`` along unit ``dirs`` (N, 3), world."""
-    f32 = np.float32
-    t = march_steps(0.05, float(range_max), rel_step, step_min)
-    if step_max:
+@lru_cache(maxsize=16)
+def _laser_steps(range_max: float, step_min: float, rel_step: float,
+                 step_max: float) -> np.ndarray:
+    """The laser's sample depths (float32; read-only, cached: the schedule was rebuilt in a
+    Python loop of ~1600 steps for every scan, ~5 ms of a 640x512 cycle)."""
+    if not step_max:
+        t = march_steps(0.05, range_max, rel_step, step_min).copy()
+    else:
         # cap the step far out (the generic schedule grows without limit)
         ts = [0.05]
         while ts[-1] < range_max:
             ts.append(ts[-1] + min(max(step_min, rel_step * ts[-1]), step_max))
-        t = np.array(ts[:-1], f32)
+        t = np.array(ts[:-1], np.float32)
+    t.setflags(write=False)
+    return t
+
+
+def cast_laser(world: World, origin: np.ndarray, dirs: np.ndarray, range_max: float,
+               step_min: float = 0.01, rel_step: float = 0.004, step_max: float = 0.04) -> np.ndarray:
+    """Ranges (NaN = no return) of beams from ``origin`` along unit ``dirs`` (N, 3), world."""
+    f32 = np.float32
+    t = _laser_steps(float(range_max), float(step_min), float(rel_step), float(step_max))
     N = dirs.shape[0]
     O = np.asarray(origin, np.float64)
     if ENGINE == "numba" and world.extent is not None:
