@@ -503,6 +503,7 @@ class StereoNoveltyPipeline(Pipeline):
         t4, c4 = time.perf_counter(), time.thread_time()
         self.last = (res, cam_mask, exclude)     # cam_mask at the descriptor resolution
         self.last_points = (pts, px, h, keep, k)  # for tools: this frame's dense points
+        self.last_disp = disp                    # for tools: the matched disparity (1/k)
         self._pyramid.clear()
         self._coarse = None
         rows, cols = res.mask.shape
