@@ -159,6 +159,10 @@ def main(argv=None) -> int:
     res = r["result"]
     print(json.dumps({k_: res.get(k_) for k_ in ("false_stops", "true_stops", "missed_stops",
                                                  "collisions")}))
+    # the drive's whole result and events, as the campaign writes them (result.json, events.json)
+    (out / f"{a.kind}-{a.seed}-result.json").write_text(json.dumps(res, indent=1, default=str))
+    (out / f"{a.kind}-{a.seed}-events.json").write_text(json.dumps(d.events, indent=1,
+                                                                   default=str))
     return 0
 
 
