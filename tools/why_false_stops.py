@@ -74,6 +74,10 @@ def main(argv=None) -> int:
                            "pts": pts, "px": px, "h": h, "keep": keep, "k": k,
                            "cells": cells, "pose": np.array([x_, y_, yaw_, d.vehicle.speed]),
                            "t_s": res.index / d.rate, "stop_len": stop_len,
+                           "att": np.array([float(getattr(res.inputs.vehicle, "roll_rad", 0.0)
+                                                  or 0.0),
+                                            float(getattr(res.inputs.vehicle, "pitch_rad", 0.0)
+                                                  or 0.0)]),
                            **{f"mask_{n}": m for n, m in
                               getattr(pipe, "_source_masks", {}).items()}})
         hist.append({"t_s": round(res.index / d.rate, 1), "zone_points": int(zmask.sum()),

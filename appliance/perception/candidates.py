@@ -108,14 +108,16 @@ def cluster_candidates(xy: np.ndarray, height: np.ndarray | None = None,
 def stalk_points(xy: np.ndarray, height: np.ndarray, other_cue: np.ndarray | None,
                  max_width_m: float, max_length_m: float, max_height_m: float,
                  window_x_m: float = 0.2, window_y_m: float = 0.3, cell_m: float = 0.1,
-                 other_min_share: float = 0.2) -> np.ndarray:
+                 other_min_share: float = 0.2, max_range_m: float = np.inf) -> np.ndarray:
     """Per obstacle point (``xy`` (N, 2) vehicle frame, ``height`` (N,) above the ground): True
     when the obstacle material around it is a **stalk**: thin and short. Around a point means
     the points in the ``cell_m`` cells within ``window_x_m`` along and ``window_y_m`` across
     of its own cell; they are a stalk when they span at most ``max_width_m`` across (y) and
     ``max_length_m`` along (x), the highest reaches at most ``max_height_m``, and fewer than
     ``other_min_share`` of them were raised by a cue other than geometry (``other_cue`` (N,)
-    bool: novelty, the learned cue; None: none).
+    bool: novelty, the learned cue; None: none). Only points at most ``max_range_m`` ahead
+    (x) are judged: farther away a thing 0.2 m across is a few pixels wide and its points too
+    sparse for a width (a crouching person 15 m away at night showed a 0.2 m sliver).
 
     A stubble tuft that reaches above the band's floor is such a thing (9-17 cm across,
     0.5-0.7 m tall, and the next tall tuft seldom within the window); a person, a pole (tall),
@@ -171,6 +173,7 @@ def stalk_points(xy: np.ndarray, height: np.ndarray, other_cue: np.ndarray | Non
     stalk = ((hi_y[gi, gj] - lo_y[gi, gj] <= max_width_m)
              & (hi_x[gi, gj] - lo_x[gi, gj] <= max_length_m)
              & (top[gi, gj] <= max_height_m)
-             & (oth[gi, gj] < other_min_share * cnt[gi, gj] - 1e-9))
+             & (oth[gi, gj] < other_min_share * cnt[gi, gj] - 1e-9)
+             & (q[:, 0] <= max_range_m))
     out[idx] = stalk
     return out

@@ -160,7 +160,7 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
     boot_support_min: float = _f(0.5, lo=0.0, hi=1.0,
                                  doc="boot_guard: the vertical support (support_min) its "
                                      "points need, whatever support_min is")
-    stalk_max_width_m: float = _f(0.0, lo=0.0, hi=2.0,
+    stalk_max_width_m: float = _f(0.22, lo=0.0, hi=2.0,
                                   doc="obstacle points whose neighbourhood (0.2 m along, 0.3 m "
                                       "across) holds band points spanning at most this across, "
                                       "stalk_max_length_m along, none higher than "
@@ -168,9 +168,14 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
                                       "20 % by novelty or the learned cue) are a stalk (a "
                                       "stubble tuft above the band's floor), not an obstacle; "
                                       "0 = off (appliance/perception/candidates.py "
-                                      "stalk_points)")
+                                      "stalk_points; docs/front-end.md 'Stalks'; before the "
+                                      "round-3 false-stop work: 0)")
     stalk_max_length_m: float = _f(0.3, lo=0.0, hi=2.0, doc="see stalk_max_width_m")
     stalk_max_height_m: float = _f(1.0, lo=0.0, hi=5.0, doc="see stalk_max_width_m")
+    stalk_max_range_m: float = _f(8.0, lo=0.0, hi=200.0,
+                                  doc="stalk_max_width_m judges only points at most this far "
+                                      "ahead (vehicle x): farther, a thing 0.2 m across is a "
+                                      "few pixels wide and its points too sparse for a width")
 
 
 # The values of issue #14's new stages that give the pipeline as it was before them (the
@@ -626,7 +631,8 @@ class StereoNoveltyPipeline(Pipeline):
         idx = np.flatnonzero(keep)
         other = self._other_cue(px[idx], f, names)
         st = stalk_points(pts[idx, :2], h[idx], other, o.stalk_max_width_m,
-                          o.stalk_max_length_m, o.stalk_max_height_m)
+                          o.stalk_max_length_m, o.stalk_max_height_m,
+                          max_range_m=o.stalk_max_range_m)
         keep[idx[st]] = False
         return int(st.sum())
 
