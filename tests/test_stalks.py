@@ -123,3 +123,20 @@ def test_only_near_points_are_judged():
     assert sn.all() and not sf.any()
     sn, sf = _judge([near, far])
     assert sn.all() and sf.all()
+
+
+def test_the_stalk_options_are_read_and_validated():
+    from appliance.config import parse_config, pipeline_options
+    from hal.errors import ConfigError
+    cfg = parse_config({"perception": {"pipelines": ["stereo-novelty"], "stereo-novelty": {
+        "stalk_max_width_m": 0.3, "stalk_max_length_m": 0.4, "stalk_max_height_m": 0.9,
+        "stalk_max_range_m": 6.0}}})
+    o = pipeline_options(cfg, "stereo-novelty")
+    assert (o.stalk_max_width_m, o.stalk_max_length_m, o.stalk_max_height_m,
+            o.stalk_max_range_m) == (0.3, 0.4, 0.9, 6.0)
+    for bad in ({"stalk_max_width_m": -0.1}, {"stalk_max_height_m": 9.0},
+                {"stalk_max_range_m": -1.0}):
+        with pytest.raises(ConfigError) as e:
+            parse_config({"perception": {"pipelines": ["stereo-novelty"],
+                                         "stereo-novelty": bad}})
+        assert next(iter(bad)) in str(e.value)
