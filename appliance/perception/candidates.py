@@ -132,6 +132,8 @@ def stalk_points(xy: np.ndarray, height: np.ndarray, other_cue: np.ndarray | Non
         return out
     h = np.asarray(height, np.float64).reshape(-1)
     ok = np.all(np.isfinite(p), axis=1) & np.isfinite(h)
+    # points beyond the judged range matter only as neighbours of judged ones
+    ok &= p[:, 0] <= max_range_m + window_x_m + 2 * cell_m
     idx = np.flatnonzero(ok)
     if len(idx) == 0:
         return out
