@@ -35,6 +35,10 @@ def main(argv=None) -> int:
     ap.add_argument("--stereo-scale", type=float, default=0.5)
     ap.add_argument("--config", default=None)
     ap.add_argument("--out", required=True)
+    ap.add_argument("--dump", action="store_true",
+                    help="also DIR/KIND-SEED-tNN.N.npz per false stop: the stop cycle's and the "
+                         "two cycles before's left/right images, disparity, dense points, "
+                         "their heights, keep mask, cue masks, pose and calibration")
     a = ap.parse_args(argv)
     from appliance.campaign import load_extra_config, make_spec
     from appliance.campaign_drive import Drive
@@ -49,6 +53,7 @@ def main(argv=None) -> int:
     pipe = next(p for p in d.daemon.pipelines if hasattr(p, "novelty"))
     z = d.zones
     hist: deque = deque(maxlen=6)
+    frames: deque = deque(maxlen=3)
     n_events = [0]
 
     def in_zone(xy, stop_len):
@@ -61,6 +66,20 @@ def main(argv=None) -> int:
         kp, kpx, kh = pts[keep], px[keep], h[keep]
         zmask = in_zone(kp[:, :2], stop_len) if len(kp) else np.zeros(0, bool)
         cells = np.asarray(res.cells_xy, float).reshape(-1, 2)
+        if a.dump:
+            fr_ = res.inputs.stereo
+            x_, y_, yaw_ = d.vehicle.pose()
+            frames.append({"left": fr_.left, "right": fr_.right,
+                           "disp": np.asarray(getattr(pipe, "last_disp", np.zeros(0))),
+                           "pts": pts, "px": px, "h": h, "keep": keep, "k": k,
+                           "cells": cells, "pose": np.array([x_, y_, yaw_, d.vehicle.speed]),
+                           "t_s": res.index / d.rate, "stop_len": stop_len,
+                           "att": np.array([float(getattr(res.inputs.vehicle, "roll_rad", 0.0)
+                                                  or 0.0),
+                                            float(getattr(res.inputs.vehicle, "pitch_rad", 0.0)
+                                                  or 0.0)]),
+                           **{f"mask_{n}": m for n, m in
+                              getattr(pipe, "_source_masks", {}).items()}})
         hist.append({"t_s": round(res.index / d.rate, 1), "zone_points": int(zmask.sum()),
                      "zone_cells": int(in_zone(cells, stop_len).sum()) if len(cells) else 0,
                      "state": res.output.state.value})
@@ -126,6 +145,17 @@ def main(argv=None) -> int:
                                if res.inputs.vehicle is not None else None},
                    "before": list(hist)}
             log.write(json.dumps(rec) + "\n")
+            if a.dump:
+                cal = fr.calib
+                arrs = {"fx": cal.camera.fx, "fy": cal.camera.fy, "cx": cal.camera.cx,
+                        "cy": cal.camera.cy, "baseline_m": cal.baseline_m,
+                        "mount_xyz": np.asarray(cal.mount.position),
+                        "mount_R": cal.mount.camera_to_vehicle(),
+                        "front_x_m": z.front_x_m, "half_width_m": z.half_width_m}
+                for i, f_ in enumerate(reversed(frames)):
+                    for key, v in f_.items():
+                        arrs[f"c{i}_{key}"] = v
+                np.savez_compressed(out / f"{a.kind}-{a.seed}-t{ev['t_s']:05.1f}.npz", **arrs)
             log.flush()
 
     d.daemon.loop.on_cycle.append(after)
@@ -133,6 +163,10 @@ def main(argv=None) -> int:
     res = r["result"]
     print(json.dumps({k_: res.get(k_) for k_ in ("false_stops", "true_stops", "missed_stops",
                                                  "collisions")}))
+    # the drive's whole result and events, as the campaign writes them (result.json, events.json)
+    (out / f"{a.kind}-{a.seed}-result.json").write_text(json.dumps(res, indent=1, default=str))
+    (out / f"{a.kind}-{a.seed}-events.json").write_text(json.dumps(d.events, indent=1,
+                                                                   default=str))
     return 0
 
 

@@ -21,7 +21,7 @@ from appliance.schema import _f
 
 from .base import Detections, Pipeline, SensorInputs
 from .cue import CueOptions, LearnedCue
-from .candidates import cluster_candidates
+from .candidates import cluster_candidates, stalk_points
 from .ground import GroundModel
 from .novelty import NoveltyDetector, dilate_cells, mask_to_camera, obstacle_cells
 from .stereo import (StereoConfig, StereoPipeline, band_mask, check_matcher, dedupe_cells, drop_dark,
@@ -160,13 +160,29 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
     boot_support_min: float = _f(0.5, lo=0.0, hi=1.0,
                                  doc="boot_guard: the vertical support (support_min) its "
                                      "points need, whatever support_min is")
+    stalk_max_width_m: float = _f(0.22, lo=0.0, hi=2.0,
+                                  doc="obstacle points whose neighbourhood (0.2 m along, 0.3 m "
+                                      "across) holds band points spanning at most this across, "
+                                      "stalk_max_length_m along, none higher than "
+                                      "stalk_max_height_m, and raised by geometry alone (under "
+                                      "20 % by novelty or the learned cue) are a stalk (a "
+                                      "stubble tuft above the band's floor), not an obstacle; "
+                                      "0 = off (appliance/perception/candidates.py "
+                                      "stalk_points; docs/front-end.md 'Stalks'; before the "
+                                      "round-3 false-stop work: 0)")
+    stalk_max_length_m: float = _f(0.3, lo=0.0, hi=2.0, doc="see stalk_max_width_m")
+    stalk_max_height_m: float = _f(1.0, lo=0.0, hi=5.0, doc="see stalk_max_width_m")
+    stalk_max_range_m: float = _f(8.0, lo=0.0, hi=200.0,
+                                  doc="stalk_max_width_m judges only points at most this far "
+                                      "ahead (vehicle x): farther, a thing 0.2 m across is a "
+                                      "few pixels wide and its points too sparse for a width")
 
 
 # The values of issue #14's new stages that give the pipeline as it was before them (the
 # Figure-5 / reproduction tables of docs/stereo-novelty.md: tools/experiments_stereo.py pins
 # them in its rows)
 PRE_ISSUE_14 = {"boot_guard": False, "pad_left": False, "support_min": 0.0, "uniqueness": 10,
-                "dark_level": 0.0, "support_known_min": 0.0}
+                "dark_level": 0.0, "support_known_min": 0.0, "stalk_max_width_m": 0.0}
 
 
 def rescale_mask(mask: np.ndarray, f: int, k: int, out_hw: tuple[int, int]) -> np.ndarray:
@@ -487,6 +503,7 @@ class StereoNoveltyPipeline(Pipeline):
                                    vehicle=inputs.vehicle, use_attitude=o.use_attitude,
                                    known_min=o.support_known_min)
             keep[idx[sup < o.support_min]] = False
+        self._drop_stalks(pts, px, h, keep, k / float(kd))
         xy = dedupe_cells(pts[keep, :2])
         cands = self._candidates(disp, pts[keep], px[keep], h[keep], k / float(kd))
         t3, c3 = time.perf_counter(), time.thread_time()
@@ -503,6 +520,7 @@ class StereoNoveltyPipeline(Pipeline):
         t4, c4 = time.perf_counter(), time.thread_time()
         self.last = (res, cam_mask, exclude)     # cam_mask at the descriptor resolution
         self.last_points = (pts, px, h, keep, k)  # for tools: this frame's dense points
+        self.last_disp = disp                    # for tools: the matched disparity (1/k)
         self._pyramid.clear()
         self._coarse = None
         rows, cols = res.mask.shape
@@ -557,6 +575,8 @@ class StereoNoveltyPipeline(Pipeline):
             sup = vertical_support(disp, px[idx], pts[idx], calib, g, vehicle=vehicle,
                                    use_attitude=o.use_attitude)
             keep[idx[sup < smin]] = False
+        # before any model: only the learned cue can speak for a stalk
+        self._drop_stalks(pts, px, hh, keep, k / float(kd), ("learned",))
         P, PX, HH = pts[keep], px[keep], hh[keep]
         conf = point_confidence(disp, PX, o.confidence_px)
         # only what the box can vouch for: enough supported points, standing on the ground
@@ -598,6 +618,36 @@ class StereoNoveltyPipeline(Pipeline):
         if o.use_attitude and vehicle is not None:
             pitch += float(vehicle.pitch_rad)
         return cam.cy - cam.fy * math.tan(pitch)
+
+    def _drop_stalks(self, pts, px, h, keep, f: float, names=("novelty", "learned")) -> int:
+        """``stalk_max_width_m``: clear ``keep`` (in place) for the obstacle points that are a
+        stalk (:func:`.candidates.stalk_points`: thin, short, raised by geometry alone; the
+        cues in ``names`` count as another cue). ``pts`` (N, 3), ``px`` (N, 2) at matching
+        resolution, ``h`` their heights; ``f``: matching px -> descriptor px. Returns how
+        many were dropped."""
+        o: StereoNoveltyConfig = self.options
+        if o.stalk_max_width_m <= 0 or not keep.any():
+            return 0
+        idx = np.flatnonzero(keep)
+        other = self._other_cue(px[idx], f, names)
+        st = stalk_points(pts[idx, :2], h[idx], other, o.stalk_max_width_m,
+                          o.stalk_max_length_m, o.stalk_max_height_m,
+                          max_range_m=o.stalk_max_range_m)
+        keep[idx[st]] = False
+        return int(st.sum())
+
+    def _other_cue(self, px, f: float, names=("novelty", "learned")):
+        """Per point (pixels ``px`` at matching resolution; ``f``: matching px -> descriptor
+        px): True where a cue other than geometry (novelty, the learned cue) put the pixel
+        into matching this frame."""
+        out = np.zeros(len(px), bool)
+        for key, m in getattr(self, "_source_masks", {}).items():
+            if key not in names:
+                continue
+            u = np.minimum((px[:, 0] * f).astype(np.intp), m.shape[1] - 1)
+            v = np.minimum((px[:, 1] * f).astype(np.intp), m.shape[0] - 1)
+            out |= m[v, u] > 0
+        return out
 
     def _candidates(self, disp, pts, px, h, f: float):
         """The frame's obstacle points as candidates: per-point confidence from the dense
