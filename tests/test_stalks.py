@@ -86,9 +86,10 @@ def _zone(z, tag):
 
 
 @pytest.mark.parametrize("stop", STOPS)
-def test_the_night_false_stops_tufts_are_no_obstacle_with_the_defaults(stop):
+def test_the_night_false_stops_tufts_are_no_obstacle_with_the_stalk_rule(stop):
     """The stop cycle's points in the stop zone (every one on a real tuft or its edge) are
-    all dropped by the default stereo-novelty pipeline's stalk rule, and none without it."""
+    all dropped by the stereo-novelty pipeline's stalk rule (stalk_max_width_m 0.22; off by
+    default), and none without it (the default, and the papers' configuration)."""
     from appliance.perception.stereo_novelty import (PRE_ISSUE_14, StereoNoveltyConfig,
                                                      StereoNoveltyPipeline)
     z = np.load(DATA)
@@ -98,7 +99,7 @@ def test_the_night_false_stops_tufts_are_no_obstacle_with_the_defaults(stop):
     inz = _zone(z, tag)
     assert inz.sum() >= 2
     results = {}
-    for name, opts in (("defaults", {}), ("off", {"stalk_max_width_m": 0.0}),
+    for name, opts in (("stalks", {"stalk_max_width_m": 0.22}), ("off", {}),
                        ("papers", PRE_ISSUE_14)):
         o = StereoNoveltyConfig(**{k: v for k, v in opts.items()})
         pipe = StereoNoveltyPipeline(o, background=False)
@@ -109,7 +110,7 @@ def test_the_night_false_stops_tufts_are_no_obstacle_with_the_defaults(stop):
             results[name] = int((keep & inz).sum())
         finally:
             pipe.close()
-    assert results["defaults"] == 0
+    assert results["stalks"] == 0
     assert results["off"] == inz.sum() and results["papers"] == inz.sum()
 
 

@@ -160,7 +160,11 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
     boot_support_min: float = _f(0.5, lo=0.0, hi=1.0,
                                  doc="boot_guard: the vertical support (support_min) its "
                                      "points need, whatever support_min is")
-    stalk_max_width_m: float = _f(0.22, lo=0.0, hi=2.0,
+    # Off by default (the lead's call, seventh session): the rule drops thin, short things
+    # within stalk_max_range_m that only the geometry saw — a stubble tuft, but also a stake,
+    # a small child side-on, a dog facing the vehicle — and the simulator has no such obstacle
+    # to measure that cost against the tufts it removes (docs/front-end.md "Stalks")
+    stalk_max_width_m: float = _f(0.0, lo=0.0, hi=2.0,
                                   doc="obstacle points whose neighbourhood (0.2 m along, 0.3 m "
                                       "across) holds band points spanning at most this across, "
                                       "stalk_max_length_m along, none higher than "
@@ -168,8 +172,8 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
                                       "20 % by novelty or the learned cue) are a stalk (a "
                                       "stubble tuft above the band's floor), not an obstacle; "
                                       "0 = off (appliance/perception/candidates.py "
-                                      "stalk_points; docs/front-end.md 'Stalks'; before the "
-                                      "round-3 false-stop work: 0)")
+                                      "stalk_points; docs/front-end.md 'Stalks'; 0.22 removed "
+                                      "the training night drives' tuft stops)")
     stalk_max_length_m: float = _f(0.3, lo=0.0, hi=2.0, doc="see stalk_max_width_m")
     stalk_max_height_m: float = _f(1.0, lo=0.0, hi=5.0, doc="see stalk_max_width_m")
     stalk_max_range_m: float = _f(8.0, lo=0.0, hi=200.0,
