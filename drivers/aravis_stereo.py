@@ -133,6 +133,16 @@ class _Cam:
         self.A, self.ident, self.side = Aravis, ident, side
         self.cam = None
         self.stream = None
+        self.dev = None
+        self.handler = None               # the control-lost signal handler's id
+        # Closed cameras, held until RELEASE_AFTER_S after their signal handler was
+        # disconnected, then let go by the acquisition thread (reap()). Dropping the last
+        # reference to an ArvCamera finalises its device, which joins Aravis's own threads; if
+        # that last reference goes in one of those threads (the control-lost callback's
+        # arguments, released in the heartbeat thread as the driver closes the camera), GLib
+        # joins a thread from itself and aborts the process ("g_system_thread_wait: Resource
+        # deadlock avoided", SIGTRAP): the soak's daemon died so after a GigE unplug.
+        self.graveyard: list[tuple[float, object]] = []
         self.lost = threading.Event()
         self.last_frame = time.monotonic()
         self.pixel_format = "BayerRG8"
@@ -163,7 +173,9 @@ class _Cam:
             raise DeviceOperationError(f"{self.side} camera {self.ident}: cannot open: {exc}")
         try:
             dev = cam.get_device()
-            dev.connect("control-lost", lambda *_: self.lost.set())
+            lost = self.lost              # the callback holds the event, not this object
+            handler = dev.connect("control-lost", lambda *_: lost.set())
+            self.dev, self.handler = dev, handler
             sw, sh = cam.get_sensor_size()
             if width > sw or height > sh:
                 raise DeviceInitializationError(
@@ -208,13 +220,43 @@ class _Cam:
         self.last_frame = time.monotonic()
         self.stats_prev = {}
 
+    # long enough for a control-lost callback in flight (it only sets an event) to return;
+    # short, because the old device keeps the camera's control channel until it is let go
+    # (held 2 s, the fake camera refused the reconnect: tests/test_hw_aravis.py)
+    RELEASE_AFTER_S = 0.3
+
     def close(self):
-        cam, self.cam, self.stream = self.cam, None, None
+        cam, stream, self.cam, self.stream = self.cam, self.stream, None, None
+        dev, handler, self.dev, self.handler = self.dev, self.handler, None, None
+        if dev is not None and handler is not None:
+            try:
+                dev.disconnect(handler)
+            except Exception:
+                pass
         if cam is not None:
             try:
                 cam.stop_acquisition()
             except Exception:
                 pass
+        if dev is not None and hasattr(dev, "leave_control"):
+            try:                          # a GigE camera takes one controller: free it now,
+                dev.leave_control()       # not when the held object is let go
+            except Exception:
+                pass
+        if cam is not None or dev is not None:
+            self.graveyard.append((time.monotonic(), (cam, stream, dev)))
+        cam = stream = dev = None
+
+    def reap(self, force: bool = False) -> int:
+        """Let go of closed cameras whose handler has been off for RELEASE_AFTER_S (all with
+        ``force``, once Aravis's callbacks cannot run any more). Call from the acquisition
+        thread or after it ended. Returns how many were let go."""
+        now = time.monotonic()
+        keep = [(t, o) for t, o in self.graveyard
+                if not force and now - t < self.RELEASE_AFTER_S]
+        n = len(self.graveyard) - len(keep)
+        self.graveyard = keep
+        return n
 
     def pop(self):
         """A finished buffer (or None), without waiting."""
@@ -340,6 +382,9 @@ class AravisStereoCamera(Reconnecting, StereoCamera):
 
     # ---- acquisition ----------------------------------------------------------------------------
     def _acquire_once(self) -> None:
+        for c in self.cams:
+            if c.graveyard:
+                c.reap()
         if not self._streaming:
             self._connect_when_due(self._start)
             return

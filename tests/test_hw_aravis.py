@@ -287,3 +287,47 @@ def test_a_wall_clock_step_between_arrival_and_take_drops_the_frame_not_stamps_i
     assert frame_age_ns(t + 400 * 86400 * 10**9, t) is None   # stepped forwards
     assert frame_age_ns(t - 3600 * 10**9, t) is None          # stepped back
     assert frame_age_ns(t + MAX_FRAME_AGE_NS + 1, t) is None
+
+
+def test_a_closed_camera_is_let_go_by_the_acquisition_thread_after_its_handler_is_off():
+    """The soak's daemon died (SIGTRAP, "g_system_thread_wait: Resource deadlock avoided") after
+    a GigE unplug: the last reference to the closed ArvCamera went in Aravis's own heartbeat
+    thread (the control-lost callback's arguments), whose finalisation joined that thread from
+    itself. close() now disconnects the handler and keeps the camera; reap() lets it go
+    RELEASE_AFTER_S later, from the acquisition thread. (The whole path against the fake GigE
+    camera, unplugged and back, is test_fake_gige_pair_through_the_daemon.)"""
+    import gc
+    import weakref
+    from drivers.aravis_stereo import _Cam
+
+    class Obj:                         # stands for a GObject: weakly referencable
+        pass
+
+    class Dev(Obj):
+        def __init__(self):
+            self.handlers = {}
+
+        def disconnect(self, hid):
+            del self.handlers[hid]
+
+    class Cam(Obj):
+        stopped = False
+
+        def stop_acquisition(self):
+            self.stopped = True
+
+    c = _Cam(None, "127.0.0.2", "right")
+    cam, dev = Cam(), Dev()
+    dev.handlers[7] = lambda *_: c.lost.set()
+    c.cam, c.stream, c.dev, c.handler = cam, Obj(), dev, 7
+    ref = weakref.ref(cam)
+    c.close()
+    assert cam.stopped and dev.handlers == {} and c.cam is None and c.dev is None
+    del cam, dev
+    gc.collect()
+    assert ref() is not None                    # held: not let go wherever a ref drops
+    assert c.reap() == 0 and ref() is not None  # not before RELEASE_AFTER_S
+    c.graveyard = [(t - c.RELEASE_AFTER_S - 0.1, o) for t, o in c.graveyard]
+    assert c.reap() == 1
+    gc.collect()
+    assert ref() is None and c.graveyard == []
