@@ -88,6 +88,10 @@ class RgbdPipelineConfig(CueOptions):
     traversable: tuple = _f(("bush", "pepper"), doc="class names the vehicle may drive through")
     ground_classes: tuple = _f(("ground",), doc="class names that are traversable below "
                                                 "ground_max_height_m (paper: none)")
+    ground_class_contact: bool = _f(True, doc="a colour group may stand on the ground through "
+                                              "the steep ground-class pixels at ground height "
+                                              "below it (an obstacle of the ground's colour: its "
+                                              "lower face is traversable by colour; paper: false)")
     bottom_grounded: bool = _f(True, doc="a group cut off by the image bottom stands on the "
                                          "ground the camera cannot see (paper: false)")
     min_height_m: float = _f(0.15, lo=0.0, hi=3.0, doc="a group must rise this high above the "
@@ -140,6 +144,7 @@ PAPER_RULE = {
     "texture": "after-colour", "texture_scope": "suspected", "texture_undefined": True,
     "contact_px": 1, "texture_contact_px": 0, "ground_max_height_m": 0.0, "ground_classes": (),
     "bottom_grounded": False, "min_height_m": 0.0, "holes": False,
+    "ground_class_contact": False,
 }
 
 
@@ -202,7 +207,8 @@ class RgbdPipeline(Pipeline):
                          bottom_rows=(o.slope_step_px + o.dilate_px // 2 + o.contact_px)
                          if o.bottom_grounded else 0,
                          texture_contact_px=o.texture_contact_px, min_height_m=o.min_height_m,
-                         raised_bottom_only=o.raised_bottom_only)
+                         raised_bottom_only=o.raised_bottom_only,
+                         ground_class_contact=o.ground_class_contact)
 
     # ------------------------------------------------------------------------------------------
     def process(self, inputs: SensorInputs) -> Detections:
