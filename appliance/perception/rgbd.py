@@ -78,6 +78,10 @@ class RgbdPipelineConfig(CueOptions):
     texture_window_px: int = _f(20, lo=3, hi=100)
     texture_threshold: float = _f(0.5, lo=0.0, hi=2.0, doc="chi-square distance for a class")
     min_pixels: int = _f(30, lo=1, hi=100000, doc="smallest obstacle group")
+    texture_min_pixels: int = _f(0, lo=0, hi=100000,
+                                 doc="smallest texture group (0 = min_pixels); texture decides "
+                                     "per window, so more than texture_window_px^2 means two "
+                                     "windows at least agree")
     contact_px: int = _f(1, lo=1, hi=50, doc="surface within this many rows below a group "
                                              "(1 = the next row, the paper)")
     texture_contact_px: int = _f(20, lo=0, hi=100, doc="texture groups may touch the surface "
@@ -208,7 +212,8 @@ class RgbdPipeline(Pipeline):
                          if o.bottom_grounded else 0,
                          texture_contact_px=o.texture_contact_px, min_height_m=o.min_height_m,
                          raised_bottom_only=o.raised_bottom_only,
-                         ground_class_contact=o.ground_class_contact)
+                         ground_class_contact=o.ground_class_contact,
+                         texture_min_pixels=o.texture_min_pixels)
 
     # ------------------------------------------------------------------------------------------
     def process(self, inputs: SensorInputs) -> Detections:

@@ -166,6 +166,7 @@ class Rule:
     texture_contact_px: int = 0          # contact_px of texture groups (0: contact_px)
     min_height_m: float = 0.0            # a group must rise this high above the ground (0: any)
     raised_bottom_only: bool = False     # raised level patches count only at the image bottom
+    texture_min_pixels: int = 0          # smallest texture group (0: min_pixels)
     ground_class_contact: bool = False   # a colour group may stand on the ground through the
     #                                      steep ground-class pixels at ground height below it
 
@@ -277,5 +278,7 @@ def decide(suspected: np.ndarray, surface: np.ndarray, colour_class: np.ndarray,
                                                       rule.texture_undefined)
     else:
         cand = suspected & _blocked(texture_class, rule, low, rule.texture_undefined)
+    if rule.texture_min_pixels:
+        grp["min_pixels"] = max(rule.min_pixels, rule.texture_min_pixels)
     tex, n_tex = obstacle_groups(cand, surface, **grp)
     return Decision(col, tex, n_col, n_tex, ras, n_ras, lrn, n_lrn)
