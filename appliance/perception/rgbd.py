@@ -78,10 +78,12 @@ class RgbdPipelineConfig(CueOptions):
     texture_window_px: int = _f(20, lo=3, hi=100)
     texture_threshold: float = _f(0.5, lo=0.0, hi=2.0, doc="chi-square distance for a class")
     min_pixels: int = _f(30, lo=1, hi=100000, doc="smallest obstacle group")
-    texture_min_pixels: int = _f(0, lo=0, hi=100000,
-                                 doc="smallest texture group (0 = min_pixels); texture decides "
-                                     "per window, so more than texture_window_px^2 means two "
-                                     "windows at least agree")
+    texture_min_pixels: int = _f(401, lo=0, hi=100000,
+                                 doc="smallest texture group (0 = min_pixels, the paper); "
+                                     "texture decides per texture_window_px window, so more "
+                                     "than a window's area (20x20 = 400) means at least two "
+                                     "windows agree: one window's LBP verdict on a bush edge "
+                                     "is not an obstacle")
     contact_px: int = _f(1, lo=1, hi=50, doc="surface within this many rows below a group "
                                              "(1 = the next row, the paper)")
     texture_contact_px: int = _f(20, lo=0, hi=100, doc="texture groups may touch the surface "
@@ -148,7 +150,7 @@ PAPER_RULE = {
     "texture": "after-colour", "texture_scope": "suspected", "texture_undefined": True,
     "contact_px": 1, "texture_contact_px": 0, "ground_max_height_m": 0.0, "ground_classes": (),
     "bottom_grounded": False, "min_height_m": 0.0, "holes": False,
-    "ground_class_contact": False,
+    "ground_class_contact": False, "texture_min_pixels": 0,
 }
 
 
