@@ -90,6 +90,12 @@ class RgbdPipelineConfig(CueOptions):
     texture_window_px: int = _f(20, lo=3, hi=100)
     texture_threshold: float = _f(0.5, lo=0.0, hi=2.0, doc="chi-square distance for a class")
     min_pixels: int = _f(30, lo=1, hi=100000, doc="smallest obstacle group")
+    texture_min_pixels: int = _f(401, lo=0, hi=100000,
+                                 doc="smallest texture group (0 = min_pixels, the paper); "
+                                     "texture decides per texture_window_px window, so more "
+                                     "than a window's area (20x20 = 400) means at least two "
+                                     "windows agree: one window's LBP verdict on a bush edge "
+                                     "is not an obstacle")
     contact_px: int = _f(1, lo=1, hi=50, doc="surface within this many rows below a group "
                                              "(1 = the next row, the paper)")
     texture_contact_px: int = _f(20, lo=0, hi=100, doc="texture groups may touch the surface "
@@ -100,6 +106,10 @@ class RgbdPipelineConfig(CueOptions):
     traversable: tuple = _f(("bush", "pepper"), doc="class names the vehicle may drive through")
     ground_classes: tuple = _f(("ground",), doc="class names that are traversable below "
                                                 "ground_max_height_m (paper: none)")
+    ground_class_contact: bool = _f(True, doc="a colour group may stand on the ground through "
+                                              "the steep ground-class pixels at ground height "
+                                              "below it (an obstacle of the ground's colour: its "
+                                              "lower face is traversable by colour; paper: false)")
     bottom_grounded: bool = _f(True, doc="a group cut off by the image bottom stands on the "
                                          "ground the camera cannot see (paper: false)")
     min_height_m: float = _f(0.15, lo=0.0, hi=3.0, doc="a group must rise this high above the "
@@ -178,6 +188,7 @@ PAPER_RULE = {
     "texture": "after-colour", "texture_scope": "suspected", "texture_undefined": True,
     "contact_px": 1, "texture_contact_px": 0, "ground_max_height_m": 0.0, "ground_classes": (),
     "bottom_grounded": False, "min_height_m": 0.0, "holes": False,
+    "ground_class_contact": False, "texture_min_pixels": 0,
 }
 
 
@@ -242,7 +253,9 @@ class RgbdPipeline(Pipeline):
                          bottom_rows=(o.slope_step_px + o.dilate_px // 2 + o.contact_px)
                          if o.bottom_grounded else 0,
                          texture_contact_px=o.texture_contact_px, min_height_m=o.min_height_m,
-                         raised_bottom_only=o.raised_bottom_only)
+                         raised_bottom_only=o.raised_bottom_only,
+                         ground_class_contact=o.ground_class_contact,
+                         texture_min_pixels=o.texture_min_pixels)
         # geometry alone (the class model does not explain the scene): every suspected pixel
         # is a candidate, no class is traversable (a group must also rise geometry_min_rise_m
         # above its own foot: _rising)

@@ -29,6 +29,10 @@ adds to the paper (each off in ``Rule.paper()``, each measured in docs/rgbd.md):
   ahead of it); the paper's any-level-surface rule found those on their own top faces.
 - ``min_height_m``: a group must reach this height above the ground plane (at least
   TALL_MIN_PX pixels): leaves and clods lying on the path are not obstacles.
+- ``ground_class_contact``: a colour group may stand on the surface through steep pixels of a
+  ground class at ground height right below it. An obstacle coloured like the ground (a
+  soil-coloured bucket) has its lower face traversable by the ground-class rule; without this
+  only its top above ``ground_max_height_m`` is left, floating, with no surface under it.
 - ``texture_role = "traversable-colour"``: texture judges only the pixels colour called
   traversable (it is there for obstacles coloured like a class: the bush-green crate) and its
   UNDEFINED windows are no evidence there (``texture_undefined = False``); the paper's
@@ -64,17 +68,27 @@ def touching_ground(mask: np.ndarray, surface: np.ndarray, contact_px: int = 1) 
 
 def obstacle_groups(candidate: np.ndarray, surface: np.ndarray, min_pixels: int = 30,
                     contact_px: int = 1, open_px: int = 0, bottom_rows: int = 0,
-                    tall: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+                    tall: np.ndarray | None = None,
+                    bridge: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """(mask of the candidate pixels that belong to obstacle groups, number of groups).
     ``open_px`` > 1: a morphological opening by that square first (speckle is no group).
     ``bottom_rows`` > 0: a group reaching the last ``bottom_rows`` image rows stands on ground
-    the camera cannot see. ``tall`` (bool map): a group needs at least TALL_MIN_PX of them."""
+    the camera cannot see. ``tall`` (bool map): a group needs at least TALL_MIN_PX of them.
+    ``bridge`` (bool map): pixels that are not candidates themselves but through which a group
+    may stand on the surface (the lower face of an obstacle of the ground's colour, which the
+    rule calls traversable at ground height): groups are labelled on ``candidate | bridge``,
+    their size and height counted on the candidate pixels only, and only candidate pixels are
+    returned."""
     if not candidate.any():
         return np.zeros(candidate.shape, bool), 0
     cand8 = candidate.view(np.uint8) if candidate.dtype == bool else candidate.astype(np.uint8)
     if open_px > 1:
         cand8 = cv2.morphologyEx(cand8, cv2.MORPH_OPEN, np.ones((open_px, open_px), np.uint8))
         candidate = cand8 > 0
+    ext = candidate
+    if bridge is not None and bridge.any():
+        ext = candidate | bridge
+        cand8 = ext.view(np.uint8)
     # labels only (the statistics of connectedComponentsWithStats cost 10x the labelling);
     # the areas are one bincount
     n, labels = cv2.connectedComponents(cand8, connectivity=8, ltype=cv2.CV_32S)
@@ -84,11 +98,11 @@ def obstacle_groups(candidate: np.ndarray, surface: np.ndarray, min_pixels: int 
     keep[0] = False
     if not keep.any():
         return np.zeros(candidate.shape, bool), 0
-    touch = touching_ground(candidate, surface, contact_px)
+    touch = touching_ground(ext, surface, contact_px)
     grounded = np.zeros(n, bool)
     grounded[labels[touch]] = True
     if bottom_rows > 0:
-        grounded[labels[-bottom_rows:]] = True
+        grounded[labels[-bottom_rows:][ext[-bottom_rows:]]] = True
     keep &= grounded
     if tall is not None and keep.any():
         keep &= np.bincount(labels[tall & candidate], minlength=n)[:n] >= TALL_MIN_PX
@@ -100,8 +114,11 @@ def obstacle_groups(candidate: np.ndarray, surface: np.ndarray, min_pixels: int 
         out = labels == ids[0]
         for i in ids[1:]:
             out |= labels == i
-        return out, len(ids)
-    return keep.view(np.uint8)[labels].view(bool), len(ids)
+    else:
+        out = keep.view(np.uint8)[labels].view(bool)
+    if ext is not candidate:
+        out &= candidate
+    return out, len(ids)
 
 
 def class_lut(traversable_idx, n_classes: int) -> np.ndarray:
@@ -149,6 +166,9 @@ class Rule:
     texture_contact_px: int = 0          # contact_px of texture groups (0: contact_px)
     min_height_m: float = 0.0            # a group must rise this high above the ground (0: any)
     raised_bottom_only: bool = False     # raised level patches count only at the image bottom
+    texture_min_pixels: int = 0          # smallest texture group (0: min_pixels)
+    ground_class_contact: bool = False   # a colour group may stand on the ground through the
+    #                                      steep ground-class pixels at ground height below it
 
     @classmethod
     def paper(cls, traversable, n_classes: int, min_pixels: int = 30, contact_px: int = 1):
@@ -228,7 +248,14 @@ def decide(suspected: np.ndarray, surface: np.ndarray, colour_class: np.ndarray,
     grp = dict(min_pixels=rule.min_pixels, contact_px=rule.contact_px, open_px=rule.open_px,
                bottom_rows=rule.bottom_rows, tall=tall)
     colour_blocked = _blocked(colour_class, rule, low)
-    col, n_col = obstacle_groups(suspected & colour_blocked, surface, **grp)
+    bridge = None
+    if rule.ground_class_contact and low is not None:
+        # the lower face of an obstacle of the ground's colour is ground-class at ground height
+        # (traversable); its upper part is not, and stands on the ground through that face
+        gl = np.zeros(rule.n_classes + 2, bool)
+        gl[[g + 2 for g in rule.ground_classes if 0 <= g < rule.n_classes]] = True
+        bridge = suspected & low & _apply(gl, colour_class)
+    col, n_col = obstacle_groups(suspected & colour_blocked, surface, bridge=bridge, **grp)
     ras, n_ras = None, 0
     if raised is not None:
         # a raised level patch stands on something by definition: no contact needed -- unless
@@ -251,5 +278,7 @@ def decide(suspected: np.ndarray, surface: np.ndarray, colour_class: np.ndarray,
                                                       rule.texture_undefined)
     else:
         cand = suspected & _blocked(texture_class, rule, low, rule.texture_undefined)
+    if rule.texture_min_pixels:
+        grp["min_pixels"] = max(rule.min_pixels, rule.texture_min_pixels)
     tex, n_tex = obstacle_groups(cand, surface, **grp)
     return Decision(col, tex, n_col, n_tex, ras, n_ras, lrn, n_lrn)
