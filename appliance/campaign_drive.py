@@ -115,9 +115,16 @@ def drive_config_data(kind: str, seed: int, *, stereo_scale: float = 0.25,
     if pipelines is None:
         pipelines = DEFAULT_PIPELINES.get(
             kind, ("rgbd",) if sc.illumination == "greenhouse" else ("stereo-novelty",))
+    zones = {"front_x_m": round(-rear + length, 3)}
+    if sc.illumination == "greenhouse":
+        # the sprayer's narrow zone between the bush rows, as `run --sim greenhouse` runs it
+        # (with the default 1.25 m half width the rows beside the 0.8 m vehicle were in the
+        # stop zone: every greenhouse phantom found on training drives was at a bush edge)
+        from appliance.config import SCENE_ZONES
+        zones["half_width_m"] = SCENE_ZONES["greenhouse"]["half_width_m"]
     data: dict = {
         "perception": {"pipelines": list(pipelines)},
-        "zones": {"front_x_m": round(-rear + length, 3)},
+        "zones": zones,
         "sim": {"scene": kind, "seed": int(seed), "stereo_scale": float(stereo_scale),
                 "pace": 0.0},
     }

@@ -57,8 +57,7 @@ def _load_run_config(a):
 # --config runs the pipeline and the zones the scene is built for (the greenhouse sprayer:
 # an RGB-D camera, 1.2 m long, 0.8 m wide between bush rows 1.2 m apart; with the default
 # 2.5 m wide zones the bushes are in the stop zone and it never starts: docs/rgbd.md)
-SCENE_PIPELINES = {"greenhouse": ("rgbd",)}
-SCENE_ZONES = {"greenhouse": {"front_x_m": 1.1, "half_width_m": 0.5}}
+from appliance.config import SCENE_PIPELINES, SCENE_ZONES  # noqa: E402
 
 
 def all_sensors_simulated(cfg) -> bool:

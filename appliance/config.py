@@ -458,3 +458,11 @@ def load_config(path: str | Path) -> Config:
 
 def default_config() -> Config:
     return Config()
+
+
+# Scenes whose vehicle and sensors the defaults do not fit (the greenhouse sprayer: an RGB-D
+# camera, 1.2 m long, 0.8 m wide between bush rows 1.2 m apart; with the default 2.5 m wide
+# zones the bushes are in the stop zone: docs/rgbd.md). `run --sim SCENE` without a --config
+# and the campaign's drives run these, so the two measure the same box.
+SCENE_PIPELINES = {"greenhouse": ("rgbd",)}
+SCENE_ZONES = {"greenhouse": {"front_x_m": 1.1, "half_width_m": 0.5}}

@@ -287,3 +287,17 @@ def test_a_boot_stop_that_goes_on_for_a_phantom_is_a_false_stop():
         assert drv.counts["false"] == 1 and drv.counts["fault"] == 1, drv.events
     finally:
         drv.daemon.shutdown()
+
+
+def test_a_greenhouse_drive_runs_the_zones_run_sim_greenhouse_runs():
+    """The campaign's greenhouse drives judged with the default 1.25 m half width put the bush
+    rows beside the 0.8 m sprayer in the stop zone (every training phantom was at a bush edge);
+    `run --sim greenhouse` runs 0.5 m. The two now run the same zones; stubble keeps the
+    default width."""
+    from appliance.campaign_drive import drive_config_data
+    from appliance.config import SCENE_ZONES, parse_config
+    gh = parse_config(drive_config_data("greenhouse-coverage", 1), "drive").zones
+    assert (gh.front_x_m, gh.half_width_m) == (SCENE_ZONES["greenhouse"]["front_x_m"],
+                                               SCENE_ZONES["greenhouse"]["half_width_m"])
+    st = parse_config(drive_config_data("stubble-coverage", 1), "drive").zones
+    assert st.half_width_m == 1.25 and st.front_x_m == 2.2
