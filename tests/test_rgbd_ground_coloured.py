@@ -19,18 +19,12 @@ from appliance.perception.rgbd import RgbdPipeline, RgbdPipelineConfig
 
 def _frames(dists):
     from drivers.sim import scenes as S
-    from drivers.sim.field import SimField
     from drivers.sim.world import MAT_OBSTACLE
+    from tools.greenhouse_sweep import lone_obstacle_field
     protos = {o.cls: o for o in S._greenhouse_obstacles(np.random.default_rng(0))}
     soil = S._FIELD_COLOURED[5]                         # (0.45, 0.55, 0.60) BGR: the soil's
-    field = SimField("greenhouse-coverage", seed=5, sensors=("rgbd",), rate_hz=10.0)
-    o = replace(protos["bucket"], id="b", x=9.0, y=0.0, colour=soil, yaw_deg=20.0)
-    o.x_start, o.y_start = o.x, o.y
-    field.world.obstacles[:] = [o]
-    veh = field.vehicle
-    veh._footprints = [veh._footprint_points(o)]
-    rear, length, _ = field.scene.footprint
-    front = -rear + length
+    field, veh, front = lone_obstacle_field(
+        5, replace(protos["bucket"], id="b", colour=soil, yaw_deg=20.0), 9.0)
     out = []
     for d in dists:
         veh.s = 0.0

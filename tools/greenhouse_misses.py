@@ -43,6 +43,18 @@ MAT_NAMES = {MAT_SKY: "sky", MAT_GROUND: "ground", MAT_BUSH: "bush", MAT_LEAF: "
 BANDS = [(0.0, 0.85), (0.85, 1.4), (1.4, 2.0), (2.0, 3.0), (3.0, 4.0), (4.0, 5.0)]
 
 
+def pixel_counts(m, fr, r) -> dict:
+    """What the rgbd pipeline's analysis ``r`` made of the obstacle's pixels ``m`` in RGB-D
+    frame ``fr``: all, with depth, suspected, raised by colour, texture, depth holes."""
+    return {"px": int(m.sum()), "depth_px": int((m & (fr.depth_m > 0)).sum()),
+            "sus_px": int((m & r.suspected).sum()),
+            "colour_px": int((m & r.colour_obstacles).sum()),
+            "texture_px": int((m & r.texture_obstacles).sum())
+            if r.texture_obstacles is not None else 0,
+            "hole_px": int((m & r.hole_obstacles).sum())
+            if r.hole_obstacles is not None else 0}
+
+
 def parse_seeds(s: str) -> list[int]:
     out = []
     for part in s.split(","):
@@ -118,14 +130,7 @@ def drive(seed: int, frames: int, every: int, pipe: RgbdPipeline, stop_len: floa
                     "tone": getattr(o, "tone", ""), "height_m": round(o.height_m, 3),
                     "placement": getattr(o, "placement", ""),
                     "dist_m": round(dist, 3), "lat_m": round(lat, 3),
-                    "px": npx, "depth_px": int((m & (fr.depth_m > 0)).sum()),
-                    "sus_px": int((m & r.suspected).sum()),
-                    "obs_px": int((m & r.obstacles).sum()),
-                    "colour_px": int((m & r.colour_obstacles).sum()),
-                    "texture_px": int((m & r.texture_obstacles).sum())
-                    if r.texture_obstacles is not None else 0,
-                    "hole_px": int((m & r.hole_obstacles).sum())
-                    if r.hole_obstacles is not None else 0,
+                    **pixel_counts(m, fr, r), "obs_px": int((m & r.obstacles).sum()),
                     "bottom_row": int(rows.max()), "top_row": int(rows.min()),
                     "detected": near})
             # stop-zone points on no obstacle

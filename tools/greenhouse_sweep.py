@@ -32,7 +32,7 @@ from drivers.sim.world import MAT_OBSTACLE  # noqa: E402
 from hal.types import GateState  # noqa: E402
 
 sys.path.insert(0, str(ROOT / "tools"))
-from greenhouse_misses import parse_set  # noqa: E402
+from greenhouse_misses import parse_set, pixel_counts  # noqa: E402
 
 
 def variants():
@@ -57,7 +57,10 @@ def variants():
     return out
 
 
-def approach(seed: int, o, pipe, every: int, x0: float = 9.0):
+def lone_obstacle_field(seed: int, o, x0: float = 9.0):
+    """(field, vehicle, front bumper x): a greenhouse-coverage field of ``seed`` holding only
+    obstacle ``o``, placed at (x0, 0) on the vehicle's path. Used by this sweep and by
+    tests/test_rgbd_ground_coloured.py."""
     field = SimField("greenhouse-coverage", seed=seed, sensors=("rgbd",), rate_hz=10.0)
     o = replace(o, x=x0, y=0.0)
     o.x_start, o.y_start = x0, 0.0
@@ -65,7 +68,11 @@ def approach(seed: int, o, pipe, every: int, x0: float = 9.0):
     veh = field.vehicle
     veh._footprints = [veh._footprint_points(o)]
     rear, length, _ = field.scene.footprint
-    front = -rear + length
+    return field, veh, -rear + length
+
+
+def approach(seed: int, o, pipe, every: int, x0: float = 9.0):
+    field, veh, front = lone_obstacle_field(seed, o, x0)
     rows = []
     for i in range(400):
         p = veh.footprint_in_vehicle(0)
@@ -83,14 +90,7 @@ def approach(seed: int, o, pipe, every: int, x0: float = 9.0):
             if len(pts):
                 d2 = ((pts[:, None, :] - p[None, ::4, :]) ** 2).sum(-1).min(1)
                 near = bool((d2 < 0.09).any())
-            rows.append({"dist_m": round(dist, 2), "px": int(m.sum()),
-                         "depth_px": int((m & (fr.depth_m > 0)).sum()),
-                         "sus_px": int((m & r.suspected).sum()),
-                         "colour_px": int((m & r.colour_obstacles).sum()),
-                         "texture_px": int((m & r.texture_obstacles).sum())
-                         if r.texture_obstacles is not None else 0,
-                         "hole_px": int((m & r.hole_obstacles).sum())
-                         if r.hole_obstacles is not None else 0,
+            rows.append({"dist_m": round(dist, 2), **pixel_counts(m, fr, r),
                          "detected": near})
         field.step(0.1, GateState.CLEAR)
     return rows
