@@ -247,11 +247,12 @@ class _Cam:
             self.graveyard.append((time.monotonic(), (cam, stream, dev)))
         cam = stream = dev = None
 
-    def reap(self, force: bool = False) -> int:
+    def reap(self, force: bool = False, now: float | None = None) -> int:
         """Let go of closed cameras whose handler has been off for RELEASE_AFTER_S (all with
         ``force``, once Aravis's callbacks cannot run any more). Call from the acquisition
-        thread or after it ended. Returns how many were let go."""
-        now = time.monotonic()
+        thread or after it ended. ``now``: the monotonic time (default: the clock's). Returns
+        how many were let go."""
+        now = time.monotonic() if now is None else now
         keep = [(t, o) for t, o in self.graveyard
                 if not force and now - t < self.RELEASE_AFTER_S]
         n = len(self.graveyard) - len(keep)
