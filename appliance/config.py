@@ -165,6 +165,9 @@ class StatusConfig:
     incident_max: int = _f(20, lo=1, hi=10000, doc="incidents kept on disk (oldest removed)")
     incident_max_mb: float = _f(2000.0, lo=1.0, doc="disk the incidents may take, MB (oldest "
                                                     "removed first)")
+    malloc_trim_s: float = _f(60.0, lo=0.0, hi=3600.0,
+                              doc="seconds between giving the heap's free pages back to the "
+                                  "system (glibc malloc_trim); 0 = never")
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from appliance.config import Config, DeviceConfig
 from appliance.loop import ApplianceLoop
+from appliance.memory import MemoryKeeper
 from appliance.perception import make_pipeline
 from appliance import novelty_store
 from appliance.recorder import Recorder
@@ -125,6 +126,7 @@ class Daemon:
         self._status_state = None
         self._status_t = 0.0
         self.console = None
+        self.memory = None
 
     # -------------------------------------------------------------------------------------
     def start(self) -> None:
@@ -158,6 +160,8 @@ class Daemon:
         self.recorder = Recorder(self.cfg.loop.rate_hz, sc.incident_dir, sc.incident_seconds,
                                  sc.incident_max, incident_max_mb=sc.incident_max_mb)
         self.loop.on_cycle.append(self.recorder.on_cycle)
+        self.memory = MemoryKeeper(sc.malloc_trim_s)
+        self.memory.start()
         if self.serve_status:
             self.status_server = StatusServer(self.status_socket, self.status, self.handle)
             self.status_server.start()
@@ -210,6 +214,8 @@ class Daemon:
             doc["day_night"] = self.day_night.status()
         if self.console is not None:
             doc["console"] = self.console.info()
+        if self.memory is not None:
+            doc["memory"] = self.memory.status()
         heap = heap_status()
         if heap is not None:
             doc["heap"] = heap
@@ -278,6 +284,8 @@ class Daemon:
             self.console.stop()
         if self.status_server is not None:
             self.status_server.stop()
+        if self.memory is not None:
+            self.memory.stop()
         self.notifier.close()
         log.info("fieldguard stopped")
 

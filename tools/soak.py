@@ -562,6 +562,15 @@ class Soak:
                 s["cycles"] = loop.get("cycles", st.get("cycles"))
                 if st.get("heap"):
                     s["heap_mb"] = st["heap"]["traced_mb"]
+                mem = st.get("memory") or {}
+                if mem.get("malloc"):             # glibc's own account (appliance/memory.py)
+                    s["malloc_in_use_mb"] = mem["malloc"]["in_use_mb"]
+                    s["malloc_free_mb"] = mem["malloc"]["free_mb"]
+                    s["malloc_mmap_mb"] = mem["malloc"]["mmap_mb"]
+                if mem.get("py_blocks") is not None:
+                    s["py_blocks"] = mem["py_blocks"]
+                if mem.get("trim_ms_max") is not None:
+                    s["trim_ms_max"] = mem["trim_ms_max"]
             self.samples.append(s)
             self._heap_snapshots(s)
             if self.box.proc is not None and self.box.proc.poll() is not None and \
@@ -1095,7 +1104,11 @@ class Soak:
         # RSS split: anonymous memory (what a leak grows) and file-backed pages (library code
         # paged in the first time a fault's code path runs: grows early, then saturates)
         split = {}
-        for key in ("anon_mb", "file_mb", "heap_mb"):
+        # and what the anonymous memory is made of: malloc's in-use bytes (a leak, C or
+        # Python), its freed-but-kept bytes (fragmentation), its own mappings (large buffers),
+        # Python's live blocks (objects never freed)
+        for key in ("anon_mb", "file_mb", "heap_mb", "malloc_in_use_mb", "malloc_free_mb",
+                    "malloc_mmap_mb", "py_blocks"):
             parts = [sums(seg, key) for seg in judged]
             den = sum(d for _, d in parts)
             split[key] = round(sum(n for n, _ in parts) / den, 3) if den else None
@@ -1169,6 +1182,12 @@ class Soak:
             # --heap: Python's traced heap (tracemalloc), its slope over the same processes
             "heap_traced_slope_mb_per_h": split.get("heap_mb") if judged else None,
             "heap_snapshots": self.heap_dumps,
+            "malloc_in_use_slope_mb_per_h": split.get("malloc_in_use_mb") if judged else None,
+            "malloc_free_slope_mb_per_h": split.get("malloc_free_mb") if judged else None,
+            "malloc_mmap_slope_mb_per_h": split.get("malloc_mmap_mb") if judged else None,
+            "py_blocks_slope_per_h": split.get("py_blocks") if judged else None,
+            "malloc_trim_ms_max": max((x["trim_ms_max"] for x in self.samples
+                                       if "trim_ms_max" in x), default=None),
             "rss_judged_over_s": round(sum(seg[-1]["t"] - seg[0]["t"] for seg in judged)),
             "rss_processes_judged": len(judged),
             "rss_slope_longest_process_mb_per_h": None if longest is None else round(longest, 3),
