@@ -1263,6 +1263,22 @@ class Soak:
                    "open fds", 1)
         cv2.imwrite(str(self.out / "rss_fds.png"), img)
 
+        # what the anonymous memory is made of, on one scale: malloc's in-use bytes (a leak),
+        # freed-but-kept (fragmentation), its own mappings (large buffers)
+        parts = [("anon_mb", "RSS anonymous MB", (200, 0, 0)),
+                 ("malloc_in_use_mb", "malloc in use MB", (0, 0, 200)),
+                 ("malloc_free_mb", "malloc freed, kept MB", (0, 140, 200)),
+                 ("malloc_mmap_mb", "malloc mmapped MB", (0, 140, 0))]
+        pts = {k: [(x["t"] - self.t0, x[k]) for x in self.samples if k in x] for k, _, _ in parts}
+        vals = [v for ps in pts.values() for _, v in ps]
+        if vals and pts["malloc_in_use_mb"]:
+            img = np.full((H, W, 3), 255, np.uint8)
+            axes(img, f"daemon memory by kind (one scale) - seed {self.seed}", "")
+            lo, hi = min(vals), max(vals)
+            for row, (k, label, colour) in enumerate(parts):
+                series(img, pts[k], lo, hi, colour, label, row)
+            cv2.imwrite(str(self.out / "memory.png"), img)
+
         img = np.full((H, W, 3), 255, np.uint8)
         axes(img, "state the MAVLink vehicle heard (top) and the faults (bars)", "")
         hb = sorted((e["t"] - self.t0, e["status"]) for e in self.wire.events("mav")
