@@ -174,7 +174,7 @@ def detection_png(out: Path, summary: dict, results: list[dict]) -> Path:
     zone = max((s["box_stop_zone"] for s in stops), default=0.0)
     brake = max((s["vehicle_braking"] for s in stops), default=0.0)
     ymax = max([d for _, d in pts] + [zone, 5.0]) * 1.1
-    ax = Axes(img, (0, 0, W, H - 30), (-0.5, max(len(classes), 1) - 0.5), (0, ymax),
+    ax = Axes(img, (0, 0, W, H - 44), (-0.5, max(len(classes), 1) - 0.5), (0, ymax),
               "detection distance per class (first held continuously until the stop) vs "
               "stopping distance at cruise", ylabel="m ahead of the front")
     for i, c in enumerate(classes):
@@ -188,7 +188,10 @@ def detection_png(out: Path, summary: dict, results: list[dict]) -> Path:
             cv2.line(img, a, b, BLACK, 2)
         p = ax.px(i, 0)
         n = summary["detection_distance_m"].get(c, {}).get("stops", len(ds))
-        text(img, f"{c} ({n})", (p[0] - 40, p[1] + 18), 0.38)
+        # two rows of labels, alternating: long class names side by side overlap
+        label = f"{c} ({n})"
+        w = cv2.getTextSize(label, FONT, 0.38, 1)[0][0]
+        text(img, label, (p[0] - w // 2, p[1] + 18 + 14 * (i % 2)), 0.38)
     for y, col, lab in ((zone, (0, 0, 200), f"box stop zone at cruise {zone:.2f} m"),
                         (brake, (0, 140, 0), f"vehicle braking distance {brake:.2f} m")):
         a, b = ax.px(-0.5, y), ax.px(max(len(classes), 1) - 0.5, y)
