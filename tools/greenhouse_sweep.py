@@ -128,6 +128,18 @@ def approach(seed: int, o, pipe, every: int, x0: float = 9.0, y0: float = 0.0):
     return rows
 
 
+def held_from(rows):
+    """The approach's frames 0.85-4.5 m ahead, and the distance it was held continuously from:
+    the farthest from which every later frame (down to 0.85 m, the lowest ray) detected it."""
+    band = [r for r in rows if 0.85 <= r["dist_m"] <= 4.5]
+    held = None
+    for r in sorted(band, key=lambda r: r["dist_m"]):
+        if not r["detected"]:
+            break
+        held = r["dist_m"]
+    return band, held
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seed", type=int, default=5)
@@ -148,12 +160,7 @@ def main(argv=None) -> int:
     if a.buckets:
         for name, o, y in bucket_variants(a.seed):
             rows = approach(a.seed, o, pipe, a.every, y0=y)
-            band = [r for r in rows if 0.85 <= r["dist_m"] <= 4.5]
-            held = None
-            for r in sorted(band, key=lambda r: r["dist_m"]):
-                if not r["detected"]:
-                    break
-                held = r["dist_m"]
+            band, held = held_from(rows)
             # the nearest distance at which it still has pixels with depth in the image
             gone = min([r["dist_m"] for r in rows if r["depth_px"] > 0], default=None)
             res.append({"variant": name, "height_m": round(o.height_m, 2),
@@ -170,16 +177,9 @@ def main(argv=None) -> int:
         if a.only and cls not in a.only.split(","):
             continue
         rows = approach(a.seed, o, pipe, a.every)
-        band = [r for r in rows if 0.85 <= r["dist_m"] <= 4.5]
+        band, held = held_from(rows)
         det = sum(r["detected"] for r in band)
         first = max([r["dist_m"] for r in rows if r["detected"]], default=None)
-        # held continuously from: the farthest distance from which every later frame (down to
-        # 0.85 m, the lowest ray) detected it
-        held = None
-        for r in sorted(band, key=lambda r: r["dist_m"]):
-            if not r["detected"]:
-                break
-            held = r["dist_m"]
         res.append({"cls": cls, "tone": tone, "colour": [round(c, 2) for c in o.colour],
                     "height_m": round(o.height_m, 2), "frames_0.85_4.5": len(band),
                     "detected": det, "first_m": first, "held_from_m": held, "rows": rows})
