@@ -174,6 +174,12 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
                                       "0 = off (appliance/perception/candidates.py "
                                       "stalk_points; docs/front-end.md 'Stalks'; 0.22 removed "
                                       "the training night drives' tuft stops)")
+    low_band_min_m: float = _f(0.0, lo=0.0, hi=10.0,
+                               doc="issue #14 (lying people, dogs): obstacle points from this "
+                                   "height up to band_min_m count too when novelty or the "
+                                   "learned cue (not the depth cue: geometry alone) put their "
+                                   "pixel into matching; the depth cue still raises cells by "
+                                   "band_min_m. 0 = off (docs/front-end.md 'Low obstacles')")
     stalk_max_length_m: float = _f(0.3, lo=0.0, hi=2.0, doc="see stalk_max_width_m")
     stalk_max_height_m: float = _f(1.0, lo=0.0, hi=5.0, doc="see stalk_max_width_m")
     stalk_max_range_m: float = _f(8.0, lo=0.0, hi=200.0,
@@ -501,6 +507,11 @@ class StereoNoveltyPipeline(Pipeline):
             ground = self._ground = local_ground_of(src, o, getattr(ground, "base", ground))
         h = heights_above(ground, pts, o, calib.mount.z_m)
         keep = band_mask(pts, h, o.band_min_m, o.band_max_m, o.max_range_m)
+        if 0 < o.low_band_min_m < o.band_min_m and len(pts):
+            low = band_mask(pts, h, o.low_band_min_m, o.band_min_m, o.max_range_m) & ~keep
+            if low.any():
+                idx = np.flatnonzero(low)
+                keep[idx[self._other_cue(px[idx], k / float(kd))]] = True
         if o.support_min > 0 and keep.any():
             idx = np.flatnonzero(keep)
             sup = vertical_support(disp, px[idx], pts[idx], calib, ground,
