@@ -2,7 +2,7 @@
 pipelines' height band starts at 0.5 m and a person lying down is 0.25-0.38 m tall. A real
 rendered training drive (stubble-coverage seed 10, its person lying in lane 0), open loop
 through the stereo-novelty pipeline: with the paper's band no obstacle point is on the person
-in any frame of the last 8 m (its few points there are 0.03-0.44 m high); with
+in any frame of the last 8 m (its matched points there are at most 0.03-0.39 m high); with
 ``low_band_min_m`` (points 0.2-0.5 m high count where novelty or the learned
 cue put them into matching) they are."""
 from __future__ import annotations
