@@ -76,8 +76,12 @@ def test_low_band_option_is_read_and_checked():
     from appliance.config import parse_config, pipeline_options
     from hal.errors import ConfigError
     cfg = parse_config({"perception": {"pipelines": ["stereo-novelty"],
-                                       "stereo-novelty": {"low_band_min_m": 0.25}}})
-    assert pipeline_options(cfg, "stereo-novelty").low_band_min_m == 0.25
+                                       "stereo-novelty": {"low_band_min_m": 0.25,
+                                                          "low_band_feedback": False}}})
+    o = pipeline_options(cfg, "stereo-novelty")
+    assert (o.low_band_min_m, o.low_band_feedback) == (0.25, False)
+    d = StereoNoveltyConfig()
+    assert (d.low_band_min_m, d.low_band_feedback) == (0.0, True)      # off by default
     with pytest.raises(ConfigError) as e:
         parse_config({"perception": {"pipelines": ["stereo-novelty"],
                                      "stereo-novelty": {"low_band_min_m": -0.1}}})
