@@ -180,6 +180,19 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
                                   doc="stalk_max_width_m judges only points at most this far "
                                       "ahead (vehicle x): farther, a thing 0.2 m across is a "
                                       "few pixels wide and its points too sparse for a width")
+    # Off by default: measured on training drives it held five of seven low obstacles the
+    # defaults ran over, but added false stops by day (real stubble 0.2-0.45 m in novel cells)
+    # and kept one night drive standing (docs/front-end.md "Low obstacles")
+    low_band_min_m: float = _f(0.0, lo=0.0, hi=10.0,
+                               doc="issue #14 (lying people, dogs): obstacle points from this "
+                                   "height up to band_min_m count too when novelty or the "
+                                   "learned cue (not the depth cue: geometry alone) put their "
+                                   "pixel into matching; the depth cue still raises cells by "
+                                   "band_min_m. 0 = off (docs/front-end.md 'Low obstacles')")
+    low_band_feedback: bool = _f(True, doc="low_band_min_m: its points keep their cells out of "
+                                            "the novelty model's update like any obstacle point "
+                                            "(false: they are learnt, so low stubble in a novel "
+                                            "cell cannot hold that cell novel)")
 
 
 # The values of issue #14's new stages that give the pipeline as it was before them (the
@@ -501,6 +514,14 @@ class StereoNoveltyPipeline(Pipeline):
             ground = self._ground = local_ground_of(src, o, getattr(ground, "base", ground))
         h = heights_above(ground, pts, o, calib.mount.z_m)
         keep = band_mask(pts, h, o.band_min_m, o.band_max_m, o.max_range_m)
+        low_added = None
+        if 0 < o.low_band_min_m < o.band_min_m and len(pts):
+            low = band_mask(pts, h, o.low_band_min_m, o.band_min_m, o.max_range_m) & ~keep
+            if low.any():
+                idx = np.flatnonzero(low)
+                low_added = np.zeros(len(pts), bool)
+                low_added[idx[self._other_cue(px[idx], k / float(kd))]] = True
+                keep |= low_added
         if o.support_min > 0 and keep.any():
             idx = np.flatnonzero(keep)
             sup = vertical_support(disp, px[idx], pts[idx], calib, ground,
@@ -512,7 +533,8 @@ class StereoNoveltyPipeline(Pipeline):
         cands = self._candidates(disp, pts[keep], px[keep], h[keep], k / float(kd))
         t3, c3 = time.perf_counter(), time.thread_time()
         # obstacle-mask feedback: cells near what was just detected are never learnt
-        exclude = obstacle_cells(px[keep] * (k / kd), res.mask.shape, res.cell_px,
+        fb = keep if low_added is None or o.low_band_feedback else keep & ~low_added
+        exclude = obstacle_cells(px[fb] * (k / kd), res.mask.shape, res.cell_px,
                                  o.obstacle_margin_px / kd)
         boot = None
         if o.boot_guard and not self.novelty.first_sent:
