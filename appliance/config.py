@@ -75,6 +75,15 @@ class GridConfig:
                         doc="cell decision: evidence an occupied cell in the stop zone needs to "
                             "make a STOP (0 = occupied_at, the papers' rule); an occupied cell "
                             "there with less is a SLOW (docs/tracking.md, 'False stops')")
+    stop_chain: int = _f(0, lo=0, hi=50,
+                         doc="cell decision: a STOP needs an occupied cell in the stop zone at the "
+                             "end of a chain of hits in this many cycles running, each within "
+                             "stop_chain_radius_m of the last (an object that stays, or moves no "
+                             "faster than the radius a cycle); a shorter chain is a SLOW "
+                             "(0 = off; docs/tracking.md, 'Chains')")
+    stop_chain_radius_m: float = _f(0.3, lo=0.0, hi=2.0,
+                                    doc="how far a chain may move in one cycle (0.3 m = 3 m/s "
+                                        "at 10 Hz)")
 
 
 @dataclass(frozen=True)

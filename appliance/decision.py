@@ -158,6 +158,9 @@ class DecisionCore:
             conf = None
             if g.stop_at > g.occupied_at:    # a STOP needs a cell seen in more cycles running
                 conf = self.grid.evidence_at(grid_cells) >= g.stop_at - 1e-6
+            if g.stop_chain > 0:             # ... or an object that stayed (or moved slowly)
+                chained = self.grid.chain_at(grid_cells) >= g.stop_chain - 1e-6
+                conf = chained if conf is None else (conf & chained)
             pic = Picture(grid_cells, assess(grid_cells, speed, self.cfg.zones, conf,
                                              cell_m=g.cell_m), speed, grid_cells)
         else:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 
 from appliance.config import GridConfig
@@ -24,10 +25,17 @@ class GridFusion:
         self.nx = int(round((c.x_max_m - c.x_min_m) / c.cell_m))
         self.ny = int(round((c.y_max_m - c.y_min_m) / c.cell_m))
         self.evidence = np.zeros((self.nx, self.ny), np.float32)   # [ix, iy]
+        # chains (``stop_chain``): per cell, how many cycles running an object was hit here
+        # or within ``stop_chain_radius_m`` of where the chain was the cycle before
+        self.chain = np.zeros((self.nx, self.ny), np.float32) if c.stop_chain > 0 else None
+        r = int(round(c.stop_chain_radius_m / c.cell_m))
+        self._chain_kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
         self._last_ns: int | None = None
 
     def reset(self) -> None:
         self.evidence[:] = 0
+        if self.chain is not None:
+            self.chain[:] = 0
         self._last_ns = None
 
     # -- geometry ---------------------------------------------------------------------------
@@ -67,17 +75,22 @@ class GridFusion:
         # old grid and skips cells: a lone cell vanished in a turn, and on a shift of exactly
         # half a cell every odd row did (OpenCV rounds ties to even). Found by
         # tests/test_properties.py
-        ix, iy = np.nonzero(self.evidence)
+        self.evidence = self._move(self.evidence, a, b)
+        if self.chain is not None:
+            self.chain = self._move(self.chain, a, b)
+
+    def _move(self, grid: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        ix, iy = np.nonzero(grid)
         if not len(ix):
-            return
-        vals = self.evidence[ix, iy]
+            return grid
+        vals = grid[ix, iy]
         nij = a @ np.stack([ix, iy]).astype(np.float64) + b[:, None]
         ni = np.floor(nij[0] + 0.5)
         nj = np.floor(nij[1] + 0.5)
         ok = (ni >= 0) & (ni < self.nx) & (nj >= 0) & (nj < self.ny)
-        out = np.zeros_like(self.evidence)
+        out = np.zeros_like(grid)
         np.maximum.at(out, (ni[ok].astype(np.int64), nj[ok].astype(np.int64)), vals[ok])
-        self.evidence = out
+        return out
 
     # -- update -----------------------------------------------------------------------------
     def update(self, points_xy: np.ndarray, vehicle: VehicleState | None,
@@ -89,16 +102,33 @@ class GridFusion:
             # evidence means nothing (a step back kept evidence "from the future": found by
             # tests/test_properties.py; the tracker drops its tracks then too)
             self.evidence[:] = 0
+            if self.chain is not None:
+                self.chain[:] = 0
         else:
             self._ego_motion(dt, vehicle)
         self.evidence *= self.cfg.decay
         pts = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
+        hit = np.zeros_like(self.evidence, dtype=bool)
         if len(pts):
             ix, iy, ok = self.cell_index(pts)
-            hit = np.zeros_like(self.evidence, dtype=bool)
             hit[ix[ok], iy[ok]] = True
             self.evidence += hit
+        if self.chain is not None:
+            # a hit cell continues the longest chain that ended within the radius last cycle
+            near = cv2.dilate(self.chain, self._chain_kernel)
+            self.chain = np.where(hit, near + 1.0, 0.0).astype(np.float32)
         return self.occupied()
+
+    def chain_at(self, cells_xy: np.ndarray) -> np.ndarray:
+        """The chain length (cycles) of the cells whose centres are ``cells_xy`` (0 off the
+        grid or with chains off)."""
+        pts = np.asarray(cells_xy, dtype=np.float64).reshape(-1, 2)
+        out = np.zeros(len(pts), np.float32)
+        if self.chain is None:
+            return out
+        ix, iy, ok = self.cell_index(pts)
+        out[ok] = self.chain[ix[ok], iy[ok]]
+        return out
 
     def occupied(self) -> np.ndarray:
         ix, iy = np.nonzero(self.evidence >= self.cfg.occupied_at - 1e-6)

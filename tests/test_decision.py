@@ -305,6 +305,90 @@ def test_stop_at_a_person_walking_into_the_path_costs_at_most_one_cycle():
     assert first[0.0] <= first[1.7] <= first[0.0] + 1
 
 
+# --- [grid] stop_chain: a STOP needs an object that stayed (or moved slowly) ----------------
+def _chain_cfg(n, radius=0.3):
+    return Config(gate=GateConfig(hold_off_s=1.0),
+                  grid=GridConfig(stop_chain=n, stop_chain_radius_m=radius),
+                  zones=ZonesConfig(front_x_m=2.2))
+
+
+def _body(x, y, w=0.45, d=0.3):
+    xs, ys = np.arange(x - d / 2, x + d / 2 + 1e-9, 0.05), np.arange(y - w / 2, y + w / 2 + 1e-9, 0.05)
+    return np.array([[a, b] for a in xs for b in ys])
+
+
+def test_stop_chain_turns_a_two_cycle_blip_in_the_stop_zone_into_a_slow():
+    """The night phantoms of the training campaign: nothing for cycles, then a few cells hit
+    in two cycles running inside the stop zone, then nothing. With stop_chain 3 that is a
+    SLOW ("unconfirmed obstacle"); with the papers' rule a STOP. A third cycle makes it a STOP."""
+    def blip(cycles):
+        def hits(k):
+            if k not in cycles:
+                return np.zeros((0, 2))
+            x = 2.2 + 2.5 + 0.25 * (max(cycles) - k)       # world-fixed, 2.5 m ahead at the end
+            return np.array([[x, 0.0], [x, 0.1]])
+        return hits
+    for cfg, want in ((_cfg(0.0), GateState.STOP), (_chain_cfg(3), GateState.SLOW)):
+        outs = _drive(DecisionCore(cfg), blip((10, 11)), 14)
+        states = [o.state for o, _ in outs[11:]]
+        assert want in states and (want is GateState.STOP or GateState.STOP not in states)
+    outs = _drive(DecisionCore(_chain_cfg(3)), blip((10, 11)), 14)
+    assert "unconfirmed obstacle" in outs[11][0].reason
+    outs = _drive(DecisionCore(_chain_cfg(3)), blip((9, 10, 11)), 14)
+    assert outs[11][0].state is GateState.STOP
+
+
+def test_stop_chain_follows_a_fast_crosser_that_stop_at_loses():
+    """An animal (0.45 x 0.3 m) crossing at 3 m/s 6 m ahead while the vehicle drives at
+    2.5 m/s: its cells move 0.3 m a cycle, so no cell is hit three cycles running and stop_at
+    1.7 never stops; a chain follows it within its 0.3 m radius, and the STOP comes on the
+    papers' rule's cycle. With radius 0 (the same cell every cycle, stop_at's rule) it is lost
+    again."""
+    def animal(k):
+        return _body(2.2 + 6.0 - 0.25 * k, 3.5 - 0.3 * k)
+
+    def first_stop(cfg):
+        outs = _drive(DecisionCore(cfg), animal, 30)
+        return next((k for k, (o, _) in enumerate(outs)
+                     if o.state is GateState.STOP and k > 10), None)
+    paper = first_stop(_cfg(0.0))
+    assert paper is not None
+    assert first_stop(_cfg(1.7)) is None
+    assert first_stop(_chain_cfg(3)) == paper
+    assert first_stop(_chain_cfg(3, radius=0.0)) is None
+
+
+def test_stop_chain_stops_for_a_post_approached_from_afar_on_the_same_cycle():
+    """A world-fixed post seen every cycle from 15 m ahead: its chain is long before it
+    reaches the stop zone, so stop_chain costs nothing there."""
+    def post(k):
+        return blob(2.2 + 15.0 - 0.25 * k, 0.05, n=2)
+    firsts = []
+    for cfg in (_cfg(0.0), _chain_cfg(3)):
+        outs = _drive(DecisionCore(cfg), post, 60)
+        firsts.append(next(k for k, (o, _) in enumerate(outs)
+                           if o.state is GateState.STOP and k > 10))
+    assert firsts[0] == firsts[1]
+
+
+def test_stop_chain_is_validated_and_reset_by_a_gap():
+    """Out-of-range values are config errors naming the key; a gap in the stamps (> 2 s)
+    forgets the chains like the evidence."""
+    from appliance.config import parse_config
+    from hal.errors import ConfigError
+    with pytest.raises(ConfigError, match="stop_chain"):
+        parse_config({"grid": {"stop_chain": -1}}, "<t>")
+    with pytest.raises(ConfigError, match="stop_chain_radius_m"):
+        parse_config({"grid": {"stop_chain_radius_m": 5.0}}, "<t>")
+    core = DecisionCore(_chain_cfg(3))
+    p = np.array([[5.0, 0.0]])
+    for k in range(3):
+        core.perceive({"s": Detections(points_xy=p)}, VehicleState(k * DT, k), k * DT)
+    assert core.grid.chain_at(p)[0] == 3
+    core.perceive({"s": Detections(points_xy=p)}, VehicleState(10**10, 9), 10**10)
+    assert core.grid.chain_at(p)[0] == 1
+
+
 def _stop_cycles(cfg: Config, frames: list[dict], speed: float = 0.0) -> list[bool]:
     core = DecisionCore(cfg)
     return [core.perceive(f, VehicleState(0, 0, speed_mps=speed), k * DT).verdict.in_stop > 0

@@ -1,5 +1,6 @@
-"""[grid] stop_at against obstacles that cross into the path (hand-made cells, no simulator):
-first STOP cycle and where the crosser was, papers' rule (0.0) against stop_at 1.7.
+"""[grid] stop_at and stop_chain against obstacles that cross into the path (hand-made cells, no
+simulator): first STOP cycle and where the crosser was, papers' rule ("paper") against
+stop_at 1.7 and stop_chain 3 (radius 0.3 m).
 
     python tools/stop_at_crossers.py
 """
@@ -19,8 +20,9 @@ def body(xc, yc, w=0.45, d=0.3):
 for speed_w in (0.6, 1.2, 1.6, 3.0):
   for x0 in (6.0, 8.0, 10.0):
     res = {}
-    for sa in (0.0, 1.7):
-        core = DecisionCore(Config(gate=GateConfig(hold_off_s=1.0), grid=GridConfig(stop_at=sa), zones=ZonesConfig(front_x_m=2.2)))
+    for name, g in (("paper", GridConfig()), ("stop_at 1.7", GridConfig(stop_at=1.7)),
+                    ("chain 3", GridConfig(stop_chain=3))):
+        core = DecisionCore(Config(gate=GateConfig(hold_off_s=1.0), grid=g, zones=ZonesConfig(front_x_m=2.2)))
         first = None
         for k in range(60):
             xw = 2.2 + x0 - 2.5 * 0.1 * k      # walker's x in the vehicle frame (vehicle at 2.5 m/s)
@@ -29,5 +31,5 @@ for speed_w in (0.6, 1.2, 1.6, 3.0):
             out = core.decide(k*DT, [], pic)
             if k > 10 and out.state is GateState.STOP and first is None:
                 first = (k, round(xw - 2.2, 2), round(yw, 2))
-        res[sa] = first
+        res[name] = first
     print('walker', speed_w, 'm/s, starts', x0, 'm ahead:', res)
