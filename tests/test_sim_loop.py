@@ -76,3 +76,30 @@ def test_driver_takes_over_at_a_real_obstacle_and_overrides_a_false_stop():
     for _ in range(30):
         g.step(0.1, GateState.STOP)
     assert w.s > s0 and g.vehicle.collisions == 0
+
+
+def test_in_a_greenhouse_lane_the_driver_clears_a_real_obstacle_and_the_drive_goes_on():
+    """No room to steer round between bush rows: held at STOP before a real obstacle, the
+    safety driver takes it out of the way (counted as a detour, named in ``cleared``); it is
+    gone from the world (no collision, not seen, not in the corridor) and the vehicle drives
+    on. Before this, every greenhouse drive stood at its first obstacle to the end."""
+    f = SimField("greenhouse-coverage", 1, sensors=("rgbd",))
+    v = f.vehicle
+    for _ in range(1500):
+        f.step(0.1, f.oracle_command())
+        if v.speed == 0.0 and v.time_s > 1.0:
+            break
+    assert v.speed == 0.0 and v.clearance_ahead() < 6.0
+    s_stop = v.s
+    for _ in range(60):                        # held 6 s: cleared after 5
+        f.step(0.1, GateState.STOP)
+    assert v.detours == 1 and len(v.cleared) == 1 and v.offset_m == 0.0
+    gone = next(o for o in f.world.obstacles if o.id == v.cleared[0])
+    assert all(t["id"] != gone.id for t in f.truth())
+    for _ in range(100):
+        f.step(0.1, f.oracle_command())
+    assert v.s > s_stop + 2.0 and v.collisions == 0
+    assert v.stats()["cleared"] == [gone.id]
+    # a stubble scene steers round instead and clears nothing
+    g = SimField("stubble-day", 0, sensors=("laser",))
+    assert g.scene.clear_after_stop is False and g.vehicle.stats()["cleared"] == []

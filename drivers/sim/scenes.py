@@ -109,6 +109,9 @@ class Scene:
     track_m: float
     bounce_deg: float                 # amplitude of the seeded suspension oscillation
     detour_offset_m: float = 0.0      # how far the safety driver steers round (0 = never)
+    # no room to steer round (a greenhouse lane): the safety driver clears a real obstacle the
+    # box stopped for out of the way instead (carries it off, the person steps aside)
+    clear_after_stop: bool = False
     sensors: tuple[str, ...] = ("stereo", "laser")
     lanes: list = field(default_factory=list)       # [(s0, s1)] route intervals of the lanes
     headland_m: float = 0.0           # lane ends this deep count as headland
@@ -750,7 +753,8 @@ def _greenhouse_coverage(kind: str, seed: int) -> Scene:
               "obstacles": len(obs), "walkers": sum(o.moving for o in obs)}
     sc = Scene(kind, seed, world, "greenhouse", path, cruise_mps=0.7, slow_mps=0.3,
                footprint=(0.1, 1.2, 0.8), wheelbase_m=0.8, track_m=0.6, bounce_deg=0.3,
-               sensors=("rgbd",), lanes=lanes, headland_m=1.0, params=params)
+               sensors=("rgbd",), lanes=lanes, headland_m=1.0, params=params,
+               clear_after_stop=True)
     # at the bush edge: "beside" only if the vehicle really passes it
     hit = set(sc.in_path_ids())
     for o in obs:

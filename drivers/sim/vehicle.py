@@ -11,7 +11,10 @@ and counts collisions.
   the driver takes over and puts the vehicle ``detour_offset_m`` to the left of its path, as if
   he had backed up and steered round; once past, the vehicle eases back onto its path. A long
   run can go on after a correct stop; a FALSE stop (nothing really ahead) is never taken over,
-  Counted in ``stats()['detours']``.
+  Counted in ``stats()['detours']``. Where there is no room to steer round (a greenhouse lane,
+  ``scene.clear_after_stop``) the driver instead clears the obstacle out of the way (carries
+  it off; a person steps aside): it leaves the world and the drive goes on. Counted as a
+  detour too (before this, a greenhouse drive stood in front of its first obstacle to the end).
 - Operator override (``override_after_s``): held at STOP that long with NOTHING really ahead
   (a false stop), the driver overrides the box and creeps on at the slow speed for
   ``override_m``, so a long run goes on and counts its false stops
@@ -46,6 +49,7 @@ class Vehicle:
         self._detour_until_s: float | None = None
         self._held_s = 0.0
         self.detours = 0
+        self.cleared: list[str] = []          # obstacles the driver took out of the way
         self.override_after_s = float(override_after_s)
         self.override_m = float(override_m)
         self._override_until_s: float | None = None
@@ -225,7 +229,9 @@ class Vehicle:
                 self.offset_m = before
             if self.offset_m == 0.0:
                 self._detour_until_s = None
-        if self.detour_offset_m <= 0 or self.command is not GateState.STOP or self.speed >= 0.05:
+        clear = self.scene.clear_after_stop
+        if ((self.detour_offset_m <= 0 and not clear) or self.command is not GateState.STOP
+                or self.speed >= 0.05):
             self._held_s = 0.0
             return
         self._held_s += dt_s
@@ -237,6 +243,11 @@ class Vehicle:
                 self._override_until_s = self.s + self.override_m    # ...then overrides
                 self.overrides += 1
                 self._held_s = 0.0
+            return
+        if clear:
+            self._clear_nearest()
+            self.detours += 1
+            self._held_s = 0.0
             return
         d, here = self.detour_offset_m, self.offset_m
         best, best_clear = here, ahead
@@ -252,6 +263,28 @@ class Vehicle:
         self.detours += 1
         self._held_s = 0.0
 
+    def _clear_nearest(self, corridor_margin_m: float = 0.3) -> None:
+        """Take the nearest obstacle in the corridor ahead out of the world (moved 10 km away:
+        the renderer, the truth and the collision test all read positions every frame)."""
+        rear, length, width = self.scene.footprint
+        best, best_k = math.inf, None
+        for k, o in enumerate(self.scene.world.obstacles):
+            if o.id in self.obstacles_hit:
+                continue
+            p = self.footprint_in_vehicle(k)
+            m = (np.abs(p[:, 1]) <= width / 2 + corridor_margin_m) & (p[:, 0] > -rear)
+            if m.any() and float(p[m, 0].min()) < best:
+                best, best_k = float(p[m, 0].min()), k
+        if best_k is None:
+            return
+        o = self.scene.world.obstacles[best_k]
+        o.walk_time_s, o.vx_mps, o.vy_mps = 0.0, 0.0, 0.0    # a walker stays where put
+        o.x, o.y = o.x + 1.0e4, o.y + 1.0e4
+        o.x_start, o.y_start = o.x, o.y
+        o.z0 = float(self.scene.world.ground(np.float32(o.x), np.float32(o.y)))
+        self.refresh_footprint(best_k)
+        self.cleared.append(o.id)
+
     def stats(self) -> dict:
         return {
             "collisions": self.collisions,
@@ -263,6 +296,7 @@ class Vehicle:
             "command": self.command.value,
             "finished": self.finished,
             "detours": self.detours,
+            "cleared": list(self.cleared),
             "overrides": self.overrides,
             "offset_m": round(self.offset_m, 2),
             "clearance_m": round(min(self.clearance_ahead(), 999.0), 2),
