@@ -82,8 +82,15 @@ class GridConfig:
                              "faster than the radius a cycle); a shorter chain is a SLOW "
                              "(0 = off; docs/tracking.md, 'Chains')")
     stop_chain_radius_m: float = _f(0.3, lo=0.0, hi=2.0,
-                                    doc="how far a chain may move in one cycle (0.3 m = 3 m/s "
-                                        "at 10 Hz)")
+                                    doc="how far a chain (or a recurrence) may move in one "
+                                        "cycle (0.3 m = 3 m/s at 10 Hz)")
+    stop_recur: float = _f(0.0, lo=0.0, hi=20.0,
+                           doc="cell decision: a STOP needs an occupied stop-zone cell whose "
+                               "recurrence reaches this: 1 for this cycle plus "
+                               "stop_recur_decay^k for each earlier cycle k back in which a cell "
+                               "within k x stop_chain_radius_m was occupied (tolerates flicker, "
+                               "unlike stop_at and stop_chain); less is a SLOW (0 = off)")
+    stop_recur_decay: float = _f(0.8, lo=0.0, hi=0.99)
 
 
 @dataclass(frozen=True)

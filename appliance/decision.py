@@ -161,6 +161,9 @@ class DecisionCore:
             if g.stop_chain > 0:             # ... or an object that stayed (or moved slowly)
                 chained = self.grid.chain_at(grid_cells) >= g.stop_chain - 1e-6
                 conf = chained if conf is None else (conf & chained)
+            if g.stop_recur > 0:             # ... or occupied again, nearby, in the last cycles
+                recurs = self.grid.recur_at(grid_cells) >= g.stop_recur - 1e-6
+                conf = recurs if conf is None else (conf & recurs)
             pic = Picture(grid_cells, assess(grid_cells, speed, self.cfg.zones, conf,
                                              cell_m=g.cell_m), speed, grid_cells)
         else:

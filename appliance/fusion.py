@@ -28,14 +28,17 @@ class GridFusion:
         # chains (``stop_chain``): per cell, how many cycles running an object was hit here
         # or within ``stop_chain_radius_m`` of where the chain was the cycle before
         self.chain = np.zeros((self.nx, self.ny), np.float32) if c.stop_chain > 0 else None
+        # recurrence (``stop_recur``): occupied now (1) + decayed, spreading memory of occupied
+        self.recur = np.zeros((self.nx, self.ny), np.float32) if c.stop_recur > 0 else None
         r = int(round(c.stop_chain_radius_m / c.cell_m))
         self._chain_kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
         self._last_ns: int | None = None
 
     def reset(self) -> None:
         self.evidence[:] = 0
-        if self.chain is not None:
-            self.chain[:] = 0
+        for g in (self.chain, self.recur):
+            if g is not None:
+                g[:] = 0
         self._last_ns = None
 
     # -- geometry ---------------------------------------------------------------------------
@@ -78,6 +81,8 @@ class GridFusion:
         self.evidence = self._move(self.evidence, a, b)
         if self.chain is not None:
             self.chain = self._move(self.chain, a, b)
+        if self.recur is not None:
+            self.recur = self._move(self.recur, a, b)
 
     def _move(self, grid: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         ix, iy = np.nonzero(grid)
@@ -102,8 +107,9 @@ class GridFusion:
             # evidence means nothing (a step back kept evidence "from the future": found by
             # tests/test_properties.py; the tracker drops its tracks then too)
             self.evidence[:] = 0
-            if self.chain is not None:
-                self.chain[:] = 0
+            for g in (self.chain, self.recur):
+                if g is not None:
+                    g[:] = 0
         else:
             self._ego_motion(dt, vehicle)
         self.evidence *= self.cfg.decay
@@ -117,7 +123,21 @@ class GridFusion:
             # a hit cell continues the longest chain that ended within the radius last cycle
             near = cv2.dilate(self.chain, self._chain_kernel)
             self.chain = np.where(hit, near + 1.0, 0.0).astype(np.float32)
+        if self.recur is not None:
+            occ = (self.evidence >= self.cfg.occupied_at - 1e-6).astype(np.float32)
+            self.recur = (cv2.dilate(self.recur, self._chain_kernel) * self.cfg.stop_recur_decay
+                          + occ)
         return self.occupied()
+
+    def recur_at(self, cells_xy: np.ndarray) -> np.ndarray:
+        """The recurrence of the cells whose centres are ``cells_xy`` (0 off the grid or off)."""
+        pts = np.asarray(cells_xy, dtype=np.float64).reshape(-1, 2)
+        out = np.zeros(len(pts), np.float32)
+        if self.recur is None:
+            return out
+        ix, iy, ok = self.cell_index(pts)
+        out[ok] = self.recur[ix[ok], iy[ok]]
+        return out
 
     def chain_at(self, cells_xy: np.ndarray) -> np.ndarray:
         """The chain length (cycles) of the cells whose centres are ``cells_xy`` (0 off the

@@ -371,6 +371,37 @@ def test_stop_chain_stops_for_a_post_approached_from_afar_on_the_same_cycle():
     assert firsts[0] == firsts[1]
 
 
+def test_stop_recur_stops_for_a_flickering_crate_that_stop_at_and_chains_lose():
+    """Training campaign stubble-coverage 4 (seed 4): a stubble-coloured crate, held only in
+    pairs of cycles with gaps (occupied at 44.7-44.9, 45.6, 45.9-46.0, 46.3 s), which
+    stop_at 1.7 never confirmed and the vehicle hit it. A world-fixed crate 1.5-1.8 m ahead at
+    1 m/s, hit in cycles 20-21 and 23-24: the papers' rule stops at 21, stop_at and
+    stop_chain 3 never, stop_recur 1.3 at 24 (occupied again 3 cycles after: 1 + 0.8^3). A
+    single occupied cycle (the night phantoms) is a SLOW under stop_recur."""
+    def crate(cycles):
+        def hits(k):
+            if k not in cycles:
+                return np.zeros((0, 2))
+            x = 2.2 + 1.5 + 0.1 * (24 - k)
+            return np.array([[x, 0.0], [x, 0.1], [x, -0.1]])
+        return hits
+
+    def first_stop(grid, cycles, speed=1.0):
+        cfg = Config(gate=GateConfig(hold_off_s=1.0), grid=grid, zones=ZonesConfig(front_x_m=2.2))
+        outs = _drive(DecisionCore(cfg), crate(cycles), 28, speed=speed)
+        return next((k for k, (o, _) in enumerate(outs) if o.state is GateState.STOP
+                     and k > 15), None)
+    flicker = (20, 21, 23, 24)
+    assert first_stop(GridConfig(), flicker) == 21
+    assert first_stop(GridConfig(stop_at=1.7), flicker) is None
+    assert first_stop(GridConfig(stop_chain=3), flicker) is None
+    assert first_stop(GridConfig(stop_recur=1.3), flicker) == 24
+    assert first_stop(GridConfig(stop_recur=1.3), (20, 21)) is None
+    with pytest.raises(Exception, match="stop_recur_decay"):
+        from appliance.config import parse_config
+        parse_config({"grid": {"stop_recur_decay": 1.5}}, "<t>")
+
+
 def test_stop_chain_is_validated_and_reset_by_a_gap():
     """Out-of-range values are config errors naming the key; a gap in the stamps (> 2 s)
     forgets the chains like the evidence."""

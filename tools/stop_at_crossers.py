@@ -21,7 +21,7 @@ for speed_w in (0.6, 1.2, 1.6, 3.0):
   for x0 in (6.0, 8.0, 10.0):
     res = {}
     for name, g in (("paper", GridConfig()), ("stop_at 1.7", GridConfig(stop_at=1.7)),
-                    ("chain 3", GridConfig(stop_chain=3))):
+                    ("chain 3", GridConfig(stop_chain=3)), ("recur 1.3", GridConfig(stop_recur=1.3))):
         core = DecisionCore(Config(gate=GateConfig(hold_off_s=1.0), grid=g, zones=ZonesConfig(front_x_m=2.2)))
         first = None
         for k in range(60):
