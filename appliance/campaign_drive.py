@@ -41,6 +41,8 @@ from collections import deque
 
 import numpy as np
 
+from appliance.zones import to_path_frame
+
 # default pipelines per scene kind: today's pipelines for the kind's sensors
 DEFAULT_PIPELINES = {"stubble-coverage": ("stereo-novelty",),
                      "stubble-coverage-night": ("stereo-novelty",),
@@ -241,12 +243,14 @@ class Drive:
         near = np.abs(self._path_s - s) <= 3.0
         return bool(np.any(self._path_turn[near]))
 
-    def truth(self, stop_len_m: float) -> list[dict]:
+    def truth(self, stop_len_m: float, curvature_1pm: float = 0.0) -> list[dict]:
         """Real obstacles near the vehicle (the simulator's world, hit ones included): per
         obstacle its index, id, class, ``ahead`` (nearest corridor point from the front, inf
         when none), ``d_zone`` (distance of its footprint to the stop zone rectangle), ``pts``
         (footprint in the level vehicle frame), ``in_stop`` (with the tolerances), ``deep``
-        (the tolerances inside the stop zone)."""
+        (the tolerances inside the stop zone). With a ``curvature_1pm`` (the box's zones
+        bent along a turn, ``[zones] follow_turn``) all of it is judged in the path's frame
+        (appliance/zones.to_path_frame): the corridor is the arc the vehicle drives."""
         z = self.zones
         rear = self.scene.footprint[0]
         x, y, _ = self.vehicle.pose()
@@ -258,6 +262,8 @@ class Drive:
             p = self.vehicle.footprint_in_vehicle(k)
             if not len(p):
                 continue
+            if curvature_1pm:
+                p = to_path_frame(p, curvature_1pm, fx)
             ay = np.abs(p[:, 1])
             corridor = (ay <= hw + self.lateral_tol_m) & (p[:, 0] >= -rear)
             ahead = float((p[corridor, 0] - fx).min()) if corridor.any() else math.inf
@@ -285,12 +291,13 @@ class Drive:
         d2 = ((c[:, None, :] - pts[None, :, :]) ** 2).sum(-1)
         return bool(d2.min() <= self.hold_m ** 2)
 
-    def _pipelines_in_stop(self, res, stop_len: float) -> list[str]:
+    def _pipelines_in_stop(self, res, stop_len: float, curvature_1pm: float = 0.0) -> list[str]:
         z = self.zones
         names = []
         for n, det in res.detections.items():
             p = det.points_xy
             if len(p):
+                p = to_path_frame(p, curvature_1pm, z.front_x_m)
                 a = p[:, 0] - z.front_x_m
                 if np.any((a >= 0) & (a <= stop_len) & (np.abs(p[:, 1]) <= z.half_width_m)):
                     names.append(n)
@@ -304,7 +311,8 @@ class Drive:
         state = out.state
         t_s = res.index / self.rate
         stop_len = res.verdict.stop_len_m if res.verdict is not None else self.zones.min_stop_m
-        truth = self.truth(stop_len)
+        kappa = float(getattr(res.verdict, "curvature_1pm", 0.0) or 0.0)
+        truth = self.truth(stop_len, kappa)
         cells = np.asarray(res.cells_xy, np.float64).reshape(-1, 2)
         x, y, yaw = v.pose()
         is_stop = state is GateState.STOP
@@ -329,7 +337,7 @@ class Drive:
             nearest = min(in_stop, key=lambda o: o["ahead"]) if in_stop else None
             kind = "fault" if fault and res.faults else ("true" if nearest else "false")
             beyond = [o for o in truth if o["in_slow"]]
-            pipes = self._pipelines_in_stop(res, stop_len)
+            pipes = self._pipelines_in_stop(res, stop_len, kappa)
             cause = cause_of(out.reason)
             if kind == "false":
                 cause = ("early: real obstacle just beyond the stop zone" if beyond else

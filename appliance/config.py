@@ -59,6 +59,13 @@ class ZonesConfig:
     slow_extra_m: float = _f(5.0, lo=0.0, hi=50.0, doc="slow-down zone beyond the stop zone")
     slow_speed_mps: float = _f(1.0, lo=0.0, hi=20.0)
     exclusion: tuple = _f((), doc="list of {x_min_m, x_max_m, y_min_m, y_max_m}")
+    follow_turn: bool = _f(False, doc="bend the stop and slow zones along the arc the vehicle "
+                                      "drives at its present curvature (yaw rate / speed; the "
+                                      "last one while it stands): what lies on the straight "
+                                      "line out of a turn is not in the path (docs/zones.md)")
+    max_curvature_1pm: float = _f(2.0, lo=0.0, hi=10.0,
+                                  doc="follow_turn: curvatures beyond this (a radius under "
+                                      "1/this) are taken as this")
 
 
 @dataclass(frozen=True)

@@ -26,8 +26,8 @@ from appliance.fusion import GridFusion
 from appliance.gate import SafetyGate
 from appliance.perception.base import Detections
 from appliance.tracking import Tracker, TrackView
-from appliance.zones import (ZoneVerdict, assess, drop_excluded, footprints_meet, sectors,
-                             stop_length, zone_rects)
+from appliance.zones import (STRAIGHT_1PM, ZoneVerdict, assess, drop_excluded,
+                             footprints_meet, sectors, stop_length, to_path_frame, zone_rects)
 from hal.types import GateOutput, VehicleState
 
 
@@ -47,7 +47,8 @@ class Picture:
 
 
 def assess_tracks(tracks: list[TrackView], cells_xy: np.ndarray, speed_mps: float, cfg: Config,
-                  cells_by_id: dict[int, np.ndarray] | None = None) -> ZoneVerdict:
+                  cells_by_id: dict[int, np.ndarray] | None = None,
+                  curvature_1pm: float = 0.0) -> ZoneVerdict:
     """The zone verdict on confirmed tracks (see the module doc). ``cells_by_id``: each
     track's cells; a track with cells is in a zone when any part of one of its cells is (a
     front end's candidate can be far larger than what stands in it), else when any part of
@@ -80,6 +81,7 @@ def assess_tracks(tracks: list[TrackView], cells_xy: np.ndarray, speed_mps: floa
                                    for t, c in zip(live, own)]), counts, axis=0)
         vel = np.repeat(np.array([(t.vx_mps, t.vy_mps) for t in live]), counts, axis=0)
         xy = (base[None] + shifts[:, None, None] * vel[None]).reshape(-1, 2)   # step-major
+        xy = to_path_frame(xy, curvature_1pm, f)     # the zones bent along the turn, if they are
         size = np.tile(size, (k_n, 1))
         g = (np.repeat(np.arange(n_t), counts)[None, :] * k_n
              + np.arange(k_n)[:, None]).ravel()                             # track, step
@@ -107,9 +109,10 @@ def assess_tracks(tracks: list[TrackView], cells_xy: np.ndarray, speed_mps: floa
                     break
         if in_stop or in_slow:
             if tc_ is not None:
-                ahead = max(0.0, float(tc_[:, 0].min()) - f)
+                ahead = max(0.0, float(to_path_frame(tc_, curvature_1pm, f)[:, 0].min()) - f)
             else:
-                ahead = max(0.0, t.x_m - t.length_m / 2 - f)
+                xp = float(to_path_frame(np.array([[t.x_m, t.y_m]]), curvature_1pm, f)[0, 0])
+                ahead = max(0.0, xp - t.length_m / 2 - f)
             (stop if in_stop else slow).append((ahead, t))
             nearest = ahead if nearest is None else min(nearest, ahead)
 
@@ -133,7 +136,8 @@ def assess_tracks(tracks: list[TrackView], cells_xy: np.ndarray, speed_mps: floa
     cells = drop_excluded(np.asarray(cells_xy, dtype=np.float64).reshape(-1, 2), z)
     return ZoneVerdict(stop_len, slow_len, len(stop), len(slow), nearest, sectors(cells),
                        stop_reason=stop_reason, slow_reason=slow_reason,
-                       track_ids=tuple(t.id for _, t in stop + slow))
+                       track_ids=tuple(t.id for _, t in stop + slow),
+                       curvature_1pm=float(curvature_1pm))
 
 
 class DecisionCore:
@@ -145,6 +149,24 @@ class DecisionCore:
         self.tracker = Tracker(cfg.tracking, cfg.grid) if cfg.tracking.enabled else None
         self.gate = SafetyGate(cfg.gate, cfg.zones)
         self.last: Picture | None = None
+        self.curvature_1pm = 0.0          # the arc the zones bend along ([zones] follow_turn)
+
+    # below this speed the yaw rate says nothing of the path: the last curvature is kept (a
+    # vehicle stopped in a turn drives on along it: its steering has not moved)
+    TURN_MIN_MPS = 0.1
+
+    def _curvature(self, vehicle: VehicleState | None) -> float:
+        z = self.cfg.zones
+        if not z.follow_turn:
+            return 0.0
+        if vehicle is not None and vehicle.speed_mps >= self.TURN_MIN_MPS:
+            k = vehicle.yaw_rate_radps / vehicle.speed_mps
+            if not math.isfinite(k):
+                k = 0.0                   # a broken yaw rate: the straight zones
+            self.curvature_1pm = max(-z.max_curvature_1pm, min(z.max_curvature_1pm, k))
+            if abs(self.curvature_1pm) < STRAIGHT_1PM:
+                self.curvature_1pm = 0.0
+        return self.curvature_1pm
 
     def perceive(self, detections: dict[str, Detections], vehicle: VehicleState | None,
                  now_ns: int) -> Picture:
@@ -153,6 +175,7 @@ class DecisionCore:
         pts_xy = np.concatenate(pts) if pts else np.zeros((0, 2), np.float32)
         grid_cells = self.grid.update(pts_xy, vehicle, now_ns)
         speed = vehicle.speed_mps if vehicle is not None else 0.0
+        kappa = self._curvature(vehicle)
         if self.tracker is None:
             g = self.cfg.grid
             conf = None
@@ -165,16 +188,18 @@ class DecisionCore:
                 recurs = self.grid.recur_at(grid_cells) >= g.stop_recur - 1e-6
                 conf = recurs if conf is None else (conf & recurs)
             pic = Picture(grid_cells, assess(grid_cells, speed, self.cfg.zones, conf,
-                                             cell_m=g.cell_m), speed, grid_cells)
+                                             cell_m=g.cell_m, curvature_1pm=kappa),
+                          speed, grid_cells)
         else:
             occ = self.grid.occupied_mask() if self.cfg.tracking.input == "occupied" else None
             z = self.cfg.zones
-            stop_zone = (z.front_x_m, z.front_x_m + stop_length(speed, z), z.half_width_m)
+            stop_zone = (z.front_x_m, z.front_x_m + stop_length(speed, z), z.half_width_m,
+                         kappa)
             tracks = self.tracker.update(detections, vehicle, now_ns, occ, stop_zone)
             by_id = self.tracker.cells_by_track()
             cells = np.concatenate(list(by_id.values())) if by_id else np.zeros((0, 2))
-            pic = Picture(cells, assess_tracks(tracks, cells, speed, self.cfg, by_id), speed,
-                          grid_cells, tracks)
+            pic = Picture(cells, assess_tracks(tracks, cells, speed, self.cfg, by_id, kappa),
+                          speed, grid_cells, tracks)
         self.last = pic
         return pic
 

@@ -297,19 +297,26 @@ def default_pipelines(info: RunInfo, cfg=None, configured: bool = False) -> list
     return names
 
 
-def _rect_intersects(ob: dict, rect: dict) -> bool:
+def _rect_intersects(ob: dict, rect: dict, curvature_1pm: float = 0.0,
+                     front_x_m: float = 0.0) -> bool:
     """Does the obstacle's footprint (length x width turned by yaw_deg) meet the zone rectangle
-    {x_min_m, x_max_m, half_width_m}? (The box's own zone test, appliance/zones.py.)"""
-    from appliance.zones import footprint_meets
-    return footprint_meets(float(ob["x_m"]), float(ob["y_m"]), float(ob["length_m"]),
-                           float(ob["width_m"]), rect,
-                           math.radians(float(ob.get("yaw_deg", 0.0))))
+    {x_min_m, x_max_m, half_width_m}? (The box's own zone test, appliance/zones.py.) With a
+    ``curvature_1pm`` the zone is bent along that arc from ``front_x_m`` (``[zones]
+    follow_turn``): the footprint is taken into the path's frame."""
+    from appliance.zones import footprint_meets, heading_to_path_frame, to_path_frame
+    xy = np.array([[float(ob["x_m"]), float(ob["y_m"])]])
+    yaw = math.radians(float(ob.get("yaw_deg", 0.0)))
+    if curvature_1pm:
+        yaw = float(heading_to_path_frame(xy, yaw, curvature_1pm)[0])
+        xy = to_path_frame(xy, curvature_1pm, front_x_m)
+    return footprint_meets(float(xy[0, 0]), float(xy[0, 1]), float(ob["length_m"]),
+                           float(ob["width_m"]), rect, yaw)
 
 
 def decision_record(index: int, stamp_ns: int, out, picture, rects, cause: str) -> dict:
     """One line of ``fieldguard eval --out`` (docs/run-format.md "The box's decisions")."""
     cells = np.asarray(picture.cells_xy, dtype=np.float64).reshape(-1, 2)
-    return {
+    rec = {
         "index": int(index), "stamp_ns": int(stamp_ns),
         "cells": [[round(float(x), 3), round(float(y), 3)] for x, y in cells],
         "state": out.state.value, "reason": out.reason,
@@ -325,6 +332,10 @@ def decision_record(index: int, stamp_ns: int, out, picture, rects, cause: str) 
         # beyond the contract: what the state is for (boot, fault, no-picture, obstacle, clear)
         "cause": cause,
     }
+    kappa = float(getattr(picture.verdict, "curvature_1pm", 0.0) or 0.0)
+    if kappa:   # beyond the contract: the zones were bent along this arc ([zones] follow_turn)
+        rec["path_curvature_1pm"] = round(kappa, 5)
+    return rec
 
 
 class _StopTally:
@@ -340,18 +351,19 @@ class _StopTally:
         self.path_frames = self.path_detected = 0
 
     def add(self, index: int, stamp_ns: int, state: str, cause: str, truth, stop_rect,
-            slow_rect=None, cells=None) -> None:
+            slow_rect=None, cells=None, curvature_1pm: float = 0.0) -> None:
         if truth is None:
             return
+        bend = (curvature_1pm, stop_rect["x_min_m"])    # the zones as the box bent them
         if slow_rect is not None:     # in the path: the stop and slow zones together
             path = dict(stop_rect, x_max_m=slow_rect["x_max_m"])
             for o in truth:
-                if _rect_intersects(o, path):
+                if _rect_intersects(o, path, *bend):
                     self.path_frames += 1
                     if cells is not None and len(cells) and \
                             footprint_distance(cells, o).min() <= MATCH_M + 1e-9:
                         self.path_detected += 1
-        real = [o for o in truth if _rect_intersects(o, stop_rect)]
+        real = [o for o in truth if _rect_intersects(o, stop_rect, *bend)]
         if real:
             self.last_real_ns = stamp_ns
             self.stop_zone_frames += 1
@@ -498,7 +510,8 @@ def evaluate_run(path: str | os.PathLike, pipeline: str | None = None, config=No
             agg.add(fr.index, score, ms)
             rects = zone_rects(vehicle.speed_mps if vehicle is not None else 0.0, cfg.zones)
             stops.add(fr.index, fr.stamp_ns, gate_out.state.value, core.gate.cause, truth,
-                      rects[0], rects[1], np.asarray(cells, dtype=np.float64).reshape(-1, 2))
+                      rects[0], rects[1], np.asarray(cells, dtype=np.float64).reshape(-1, 2),
+                      picture.verdict.curvature_1pm)
             if sink is not None:
                 sink.write(json.dumps(decision_record(fr.index, fr.stamp_ns, gate_out, picture,
                                                       rects, core.gate.cause),

@@ -48,7 +48,7 @@ from scipy.optimize import linear_sum_assignment
 
 from appliance.config import GridConfig, TrackingConfig
 from appliance.perception.base import Candidate, Detections
-from appliance.zones import footprints_meet
+from appliance.zones import footprints_meet, to_path_frame
 from hal.types import VehicleState
 
 SOURCES = ("laser", "geometry", "novelty", "cue", "colour", "texture")
@@ -510,7 +510,7 @@ class Tracker:
     # -- one cycle -------------------------------------------------------------------------
     def update(self, detections: dict[str, Detections], vehicle: VehicleState | None,
                now_ns: int, occupied: np.ndarray | None = None,
-               stop_zone: tuple[float, float, float] | None = None) -> list[TrackView]:
+               stop_zone: tuple | None = None) -> list[TrackView]:
         ms = measurements(detections, self.grid, self.cfg, occupied)
         return self.update_measurements(ms, vehicle, now_ns, stop_zone)
 
@@ -523,16 +523,18 @@ class Tracker:
             return True
         if c.stop_zone_strength > 0 and stop_zone is not None and len(t.cells_xy):
             s = max(t.strength_in.get("geometry", 0.0), t.strength_in.get("laser", 0.0))
-            x0, x1, hw = stop_zone
+            x0, x1, hw = stop_zone[:3]
+            kappa = stop_zone[3] if len(stop_zone) > 3 else 0.0   # bent along a turn
             rect = {"x_min_m": x0, "x_max_m": x1, "half_width_m": hw}
             cell = self.grid.cell_m         # any part of a cell in the stop zone (zones.py)
             if s >= c.stop_zone_strength - 1e-9 and bool(
-                    footprints_meet(t.cells_xy, cell, cell, rect).any()):
+                    footprints_meet(to_path_frame(t.cells_xy, kappa, x0), cell, cell,
+                                    rect).any()):
                 return True
         return False
 
     def update_measurements(self, ms: list[Measurement], vehicle: VehicleState | None,
-                            now_ns: int, stop_zone: tuple[float, float, float] | None = None
+                            now_ns: int, stop_zone: tuple | None = None
                             ) -> list[TrackView]:
         c = self.cfg
         dt = 0.0 if self._last_ns is None else (now_ns - self._last_ns) / 1e9

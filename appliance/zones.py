@@ -28,6 +28,7 @@ class ZoneVerdict:
     stop_reason: str | None = None
     slow_reason: str | None = None
     track_ids: tuple[int, ...] = ()   # the tracks in (or predicted into) the stop/slow zones
+    curvature_1pm: float = 0.0   # the zones bend along this arc ([zones] follow_turn; 0: straight)
 
 
 def zone_rects(speed_mps: float, z: ZonesConfig) -> tuple[dict, dict]:
@@ -91,6 +92,51 @@ def path_rect(z: ZonesConfig, reach_m: float = 1000.0) -> dict:
             "half_width_m": z.half_width_m}
 
 
+# below this curvature (1/m, a radius over 1 km) the path is taken as straight
+STRAIGHT_1PM = 1e-3
+
+
+def to_path_frame(xy, curvature_1pm: float, front_x_m: float) -> np.ndarray:
+    """Vehicle-frame points (N, 2) in the frame of the path the vehicle's front drives at a
+    constant ``curvature_1pm`` (1/m, positive turning left: the vehicle frame's y is to the
+    left, its origin the point that drives the path, as the sim's and a tractor's rear axle):
+    ``x`` = ``front_x_m`` + the arc length from the front's centre along its circle, ``y`` =
+    the offset from that circle (left positive). The zones' rectangles in this frame are the
+    stop and slow zones bent along the turn (``[zones] follow_turn``); for a straight path it
+    is the identity. The arc is followed for half a turn (a U-turn, the most a vehicle turns
+    in one go): a point behind the front on its circle, or more than half a turn ahead of it,
+    has ``x`` < ``front_x_m`` and is in no zone."""
+    p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    k = float(curvature_1pm)
+    if abs(k) < STRAIGHT_1PM or not len(p):
+        return p
+    sgn = 1.0 if k > 0 else -1.0
+    r0 = 1.0 / abs(k)                          # the origin's turning radius; centre (0, sgn r0)
+    rf = math.hypot(front_x_m, r0)             # the front centre's radius
+    yl = sgn * p[:, 1]                         # as if turning left
+    ang = np.arctan2(p[:, 0], r0 - yl)         # angle about the centre, origin at 0, forward +
+    d = ang - math.atan2(front_x_m, r0)
+    d = np.mod(d + math.pi, 2 * math.pi) - math.pi          # [-pi, pi): ahead is 0..pi
+    rho = np.hypot(p[:, 0], r0 - yl)
+    out = np.empty_like(p)
+    out[:, 0] = front_x_m + rf * d
+    out[:, 1] = sgn * (rf - rho)
+    return out
+
+
+def heading_to_path_frame(xy, yaw_rad, curvature_1pm: float) -> np.ndarray:
+    """Headings (rad, vehicle frame) of things at vehicle-frame points ``xy``, in the frame of
+    :func:`to_path_frame`: less the turn of the path's tangent there."""
+    p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    yaw = np.broadcast_to(np.asarray(yaw_rad, dtype=np.float64), (len(p),))
+    k = float(curvature_1pm)
+    if abs(k) < STRAIGHT_1PM or not len(p):
+        return np.array(yaw, dtype=np.float64)
+    sgn = 1.0 if k > 0 else -1.0
+    r0 = 1.0 / abs(k)
+    return yaw - sgn * np.arctan2(p[:, 0], r0 - sgn * p[:, 1])
+
+
 def stop_length(speed_mps: float, z: ZonesConfig) -> float:
     v = max(0.0, speed_mps)
     return max(z.min_stop_m, v * z.reaction_time_s + v * v / (2 * z.decel_mps2) + z.margin_m)
@@ -130,7 +176,8 @@ def sectors(cells_xy: np.ndarray, n: int = 72, fov_deg: float = 180.0,
 
 
 def assess(cells_xy: np.ndarray, speed_mps: float, z: ZonesConfig,
-           confirmed: np.ndarray | None = None, cell_m: float = 0.0) -> ZoneVerdict:
+           confirmed: np.ndarray | None = None, cell_m: float = 0.0,
+           curvature_1pm: float = 0.0) -> ZoneVerdict:
     """The zone verdict on occupied cells. ``confirmed`` (one flag per cell, or None: all):
     only a confirmed cell in the stop zone makes a STOP; an unconfirmed one there is a SLOW
     (``[grid] stop_at``: a cell seen in too few cycles running to stop for). ``cell_m``: the
@@ -138,7 +185,8 @@ def assess(cells_xy: np.ndarray, speed_mps: float, z: ZonesConfig,
     centre may be up to half a cell beyond the zone's far end, side or near end while what
     hit it is inside), so what the grid holds 4 cm beyond the stop zone's end is a STOP, not a
     SLOW one cycle too long. ``nearest_m``: the nearest such cell's centre from the front (0
-    when its centre is behind the front)."""
+    when its centre is behind the front). ``curvature_1pm``: the zones bend along that arc
+    (:func:`to_path_frame`; distances are then along the arc)."""
     cells = np.asarray(cells_xy, dtype=np.float64).reshape(-1, 2)
     if confirmed is not None:
         keep = kept_mask(cells, z)
@@ -149,13 +197,14 @@ def assess(cells_xy: np.ndarray, speed_mps: float, z: ZonesConfig,
     stop_len = stop_length(speed_mps, z)
     slow_len = stop_len + z.slow_extra_m
     stop_rect, slow_rect = zone_rects(speed_mps, z)
-    ahead = np.maximum(cells[:, 0] - z.front_x_m, 0.0)
-    fwd = footprints_meet(cells, cell_m, cell_m, path_rect(z))
-    stop_cells = fwd & footprints_meet(cells, cell_m, cell_m, stop_rect)
+    pc = to_path_frame(cells, curvature_1pm, z.front_x_m)
+    ahead = np.maximum(pc[:, 0] - z.front_x_m, 0.0)
+    fwd = footprints_meet(pc, cell_m, cell_m, path_rect(z))
+    stop_cells = fwd & footprints_meet(pc, cell_m, cell_m, stop_rect)
     in_stop = int(np.count_nonzero(stop_cells & conf))
     waiting = int(np.count_nonzero(stop_cells & ~conf))
     in_slow = int(np.count_nonzero(
-        fwd & ~stop_cells & footprints_meet(cells, cell_m, cell_m, slow_rect))) + waiting
+        fwd & ~stop_cells & footprints_meet(pc, cell_m, cell_m, slow_rect))) + waiting
     nearest = float(ahead[fwd].min()) if np.any(fwd) else None
     slow_reason = None
     if waiting and not in_stop:
@@ -163,4 +212,4 @@ def assess(cells_xy: np.ndarray, speed_mps: float, z: ZonesConfig,
         slow_reason = (f"unconfirmed obstacle {near:.1f} m ahead in the stop zone "
                        f"({stop_len:.1f} m): slow until it is seen again")
     return ZoneVerdict(stop_len, slow_len, in_stop, in_slow, nearest, sectors(cells),
-                       slow_reason=slow_reason)
+                       slow_reason=slow_reason, curvature_1pm=float(curvature_1pm))

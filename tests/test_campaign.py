@@ -265,7 +265,7 @@ def test_a_boot_stop_that_goes_on_for_a_phantom_is_a_false_stop():
                       {"perception": {"pipelines": ["laser"]}})
     drv = Drive("stubble-coverage", 1, 0.01, config_data=data).build()
     try:
-        drv.truth = lambda stop_len_m: []                # nothing real anywhere
+        drv.truth = lambda stop_len_m, curvature_1pm=0.0: []                # nothing real anywhere
         def cycle(i, state, reason):
             drv.on_cycle(NS(index=i, output=NS(state=state, reason=reason),
                             verdict=NS(stop_len_m=3.8, nearest_m=1.2),
