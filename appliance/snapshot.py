@@ -10,12 +10,28 @@ import cv2
 import numpy as np
 
 from appliance.config import Config
-from appliance.zones import stop_length
+from appliance.zones import stop_length, zone_outline
 from hal.types import GateState
 
 STATE_BGR = {GateState.STOP: (40, 40, 220), GateState.SLOW: (0, 190, 230),
              GateState.CLEAR: (60, 180, 60)}
 PANEL_H = 420
+
+
+def curvature_of(res) -> float:
+    """The arc the box bent its zones along this cycle (0: straight; [zones] follow_turn)."""
+    return float(getattr(getattr(res, "verdict", None), "curvature_1pm", 0.0) or 0.0)
+
+
+def draw_zones(img, px, z, stop_len_m: float, curvature_1pm: float = 0.0) -> None:
+    """The slow and stop zones on a top view (``px(x, y)`` -> pixel), bent along the turn
+    when the box bent them."""
+    f, hw = z.front_x_m, z.half_width_m
+    for x0, x1, state, thick in ((f + stop_len_m, f + stop_len_m + z.slow_extra_m,
+                                  GateState.SLOW, 1), (f, f + stop_len_m, GateState.STOP, 2)):
+        pts = np.array([px(x, y) for x, y in zone_outline(x0, x1, hw, curvature_1pm, f)],
+                       np.int32)
+        cv2.polylines(img, [pts], True, STATE_BGR[state], thick)
 
 
 def _fit(img: np.ndarray, h: int) -> np.ndarray:
@@ -191,8 +207,7 @@ def grid_panel(res, evidence: np.ndarray, cfg: Config) -> np.ndarray:
     stop = stop_length(speed, z)
     slow = stop + z.slow_extra_m
     f, hw = z.front_x_m, z.half_width_m
-    cv2.rectangle(img, px(f + slow, hw), px(f + stop, -hw), STATE_BGR[GateState.SLOW], 1)
-    cv2.rectangle(img, px(f + stop, hw), px(f, -hw), STATE_BGR[GateState.STOP], 2)
+    draw_zones(img, px, z, stop, curvature_of(res))
     for e in z.exclusion:
         cv2.rectangle(img, px(e.x_max_m, e.y_max_m), px(e.x_min_m, e.y_min_m), (200, 120, 0), 1)
     # tracks: footprint, id, distance, cues

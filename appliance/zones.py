@@ -124,6 +124,34 @@ def to_path_frame(xy, curvature_1pm: float, front_x_m: float) -> np.ndarray:
     return out
 
 
+def from_path_frame(xy, curvature_1pm: float, front_x_m: float) -> np.ndarray:
+    """The inverse of :func:`to_path_frame`: path-frame points back in the vehicle frame."""
+    q = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    k = float(curvature_1pm)
+    if abs(k) < STRAIGHT_1PM or not len(q):
+        return q
+    sgn = 1.0 if k > 0 else -1.0
+    r0 = 1.0 / abs(k)
+    rf = math.hypot(front_x_m, r0)
+    a = math.atan2(front_x_m, r0) + (q[:, 0] - front_x_m) / rf
+    rho = rf - sgn * q[:, 1]
+    return np.stack([rho * np.sin(a), sgn * (r0 - rho * np.cos(a))], axis=1)
+
+
+def zone_outline(x_min_m: float, x_max_m: float, half_width_m: float, curvature_1pm: float,
+                 front_x_m: float, step_m: float = 0.1) -> np.ndarray:
+    """A zone rectangle (path frame) as a closed outline in the vehicle frame, bent along the
+    turn when there is one (for drawing: the snapshot, the console)."""
+    if abs(curvature_1pm) >= STRAIGHT_1PM:      # the zones end after half a turn
+        half_turn = front_x_m + math.pi * math.hypot(front_x_m, 1.0 / abs(curvature_1pm))
+        x_max_m = max(x_min_m, min(x_max_m, half_turn))
+    n = max(2, int(math.ceil((x_max_m - x_min_m) / step_m)) + 1)
+    xs = np.linspace(x_min_m, x_max_m, n)
+    left = np.stack([xs, np.full(n, half_width_m)], axis=1)
+    right = np.stack([xs[::-1], np.full(n, -half_width_m)], axis=1)
+    return from_path_frame(np.concatenate([left, right]), curvature_1pm, front_x_m)
+
+
 def heading_to_path_frame(xy, yaw_rad, curvature_1pm: float) -> np.ndarray:
     """Headings (rad, vehicle frame) of things at vehicle-frame points ``xy``, in the frame of
     :func:`to_path_frame`: less the turn of the path's tangent there."""

@@ -15,7 +15,8 @@ from hal.errors import ConfigError
 from appliance.evaluation import _StopTally
 from appliance.perception import Detections
 from appliance.tracking import TrackView
-from appliance.zones import heading_to_path_frame, to_path_frame, zone_rects
+from appliance.zones import (from_path_frame, heading_to_path_frame, to_path_frame, zone_outline,
+                             zone_rects)
 from hal import GateState
 from hal.types import VehicleState
 
@@ -49,6 +50,12 @@ def test_to_path_frame_unrolls_the_front_s_circle_and_is_the_identity_when_strai
     assert np.allclose(mirrored, to_path_frame(p, 1.0, F))
     # behind the vehicle: before the front on its circle, in no zone
     assert to_path_frame(np.array([[-1.0, 0.0]]), 1.0, F)[0, 0] < F
+    # and back
+    q = np.array([[F, 0.0], [2.0, 0.4], [3.5, -0.5]])
+    for k in (1.0, -0.7, 0.0):
+        assert np.allclose(to_path_frame(from_path_frame(q, k, F), k, F), q)
+    out = zone_outline(F, F + 2.0, HW, 1.0, F)
+    assert np.allclose(to_path_frame(out, 1.0, F)[:, 1] ** 2, HW ** 2)
     # a thing's heading follows the path's tangent
     assert heading_to_path_frame(on_front_circle(1.0)[None], 0.0, 1.0)[0] < -0.5
 
@@ -150,3 +157,26 @@ def test_eval_judges_the_truth_in_the_zones_the_box_bent():
     t.add(2, 10 * S, "CLEAR", "clear", [ahead], stop_rect, slow_rect, None, 0.0)
     r = t.result()
     assert r["false_stop_frames"] == 1 and r["missed_stop_frames"] == 1
+
+
+def test_the_snapshot_and_the_console_draw_the_zones_bent():
+    from appliance.snapshot import STATE_BGR, draw_zones
+    z = ZonesConfig(front_x_m=F, half_width_m=HW, min_stop_m=2.0)
+    ppm, size = 50, 400
+
+    def px(x, y):                         # 50 px a metre, the vehicle's origin at the bottom
+        return int(round(size / 2 - y * ppm)), int(round(size - 20 - x * ppm))
+
+    def stop_drawn(kappa):
+        img = np.zeros((size, size, 3), np.uint8)
+        draw_zones(img, px, z, 2.0, kappa)
+        return np.all(img == STATE_BGR[GateState.STOP], axis=2)
+
+    straight, bent = stop_drawn(0.0), stop_drawn(1.0)
+    # the stop zone's far edge: straight ahead when straight, on the arc to the left when bent
+    far = on_front_circle(2.0)
+    assert straight[px(F + 2.0, 0.0)[::-1]] and not bent[px(F + 2.0, 0.0)[::-1]]
+    near_far = [bent[py, pxx] for pxx, py in (px(far[0] + dx, far[1] + dy)
+                                              for dx in (-0.02, 0, 0.02)
+                                              for dy in (-0.02, 0, 0.02))]
+    assert any(near_far)

@@ -8,7 +8,8 @@ import dataclasses
 import cv2
 import numpy as np
 
-from appliance.snapshot import STATE_BGR, _label, camera_panel, project_cells
+from appliance.snapshot import (STATE_BGR, _label, camera_panel, curvature_of, draw_zones,
+                                project_cells)
 from appliance.zones import stop_length
 from hal.types import GateState
 
@@ -119,9 +120,7 @@ def grid_view(res, evidence: np.ndarray, cfg, tracks=(), height_px: int = GRID_P
     speed = veh.speed_mps if veh is not None else 0.0
     stop = stop_length(speed, z)
     f, hw = z.front_x_m, z.half_width_m
-    cv2.rectangle(img, px(f + stop + z.slow_extra_m, hw), px(f + stop, -hw),
-                  STATE_BGR[GateState.SLOW], 1)
-    cv2.rectangle(img, px(f + stop, hw), px(f, -hw), STATE_BGR[GateState.STOP], 2)
+    draw_zones(img, px, z, stop, curvature_of(res))
     for e in z.exclusion:
         cv2.rectangle(img, px(e.x_max_m, e.y_max_m), px(e.x_min_m, e.y_min_m), (200, 120, 0), 1)
     cv2.rectangle(img, px(f, 0.75), px(min(0.0, f - 2.6), -0.75), (220, 220, 220), -1)
