@@ -26,6 +26,13 @@ BOUND of the cost of a GL version:
   R32F colour attachment the shader writes the optical z into), as numpy arrays.
 - the geometry is built once (not streamed as the vehicle drives; a GL version would have to).
 
+Variants (each timed for a 640x512 pair, a 1280x1024 pair, a 640x480 single view, and the
+640x512 pair's geometry into an 80x64 viewport, where almost no fragments are left, i.e. the
+vertex + set-up cost): ``full`` (the above), ``no_tufts`` (ground + obstacles), ``coarse``
+(ground every 4th node = 0.8 m cells, 4-triangle tufts), ``floor`` (the coarse ground alone,
+untextured: albedo a constant, Lambert + noise kept), ``bare`` (the coarse ground alone, a
+constant colour + z: llvmpipe's cost of merely rasterising and writing the two images).
+
 Figures: CPU ms (``time.process_time``: every thread of the process, so llvmpipe's own threads
 cannot hide work) and wall ms per frame, p50 over ``--frames`` frames after a warm-up; the
 process is pinned to one core (``--cpu``). ``LP_NUM_THREADS`` is set from ``--lp-threads``
@@ -132,6 +139,11 @@ uint mix32(uint h) {
     h ^= h >> 16; h *= 0x85EBCA6Bu; h ^= h >> 13; h *= 0xC2B2AE35u; h ^= h >> 16; return h;
 }
 void main() {
+    if (mode == 4) {                             // the bare variant: no shading at all
+        f_col = vec4(0.5, 0.5, 0.5, 1.0);
+        f_z = v_z;
+        return;
+    }
     vec2 w = v_pos.xy + origin;
     vec3 alb;
     if (mode == 0) {
@@ -347,10 +359,10 @@ def obstacle_meshes(world, origin):
 # ---------------------------------------------------------------------------------------------
 class GLScene:
     def __init__(self, ctx, field, ground_stride=1, tuft_sides=8, tuft_rings=2,
-                 with_tufts=True, half_deg=36.0, r_max=82.0, flat=False):
+                 with_tufts=True, half_deg=36.0, r_max=82.0, ground_mode=0):
         import moderngl
         self.ctx = ctx
-        self.flat = flat
+        self.ground_mode = ground_mode
         self.field = field
         w = field.world
         cal = field.stereo_calibration
@@ -468,7 +480,7 @@ class GLScene:
         if self.vao_tuft is not None:
             p["mode"].value = 1
             self.vao_tuft.render(instances=self.n_tufts)
-        p["mode"].value = 3 if self.flat else 0
+        p["mode"].value = self.ground_mode
         self.vao_ground.render()
         ctx.finish()
         t_draw = time.process_time()
@@ -570,7 +582,8 @@ def main(argv=None) -> int:
     rows = {}
     variants = [("full", dict()), ("no_tufts", dict(with_tufts=False)),
                 ("coarse", dict(ground_stride=4, tuft_sides=4, tuft_rings=1)),
-                ("floor", dict(ground_stride=4, with_tufts=False, flat=True))]
+                ("floor", dict(ground_stride=4, with_tufts=False, ground_mode=3)),
+                ("bare", dict(ground_stride=4, with_tufts=False, ground_mode=4))]
     for name, kw in variants:
         sc = GLScene(ctx, f, **kw)
         rows[name] = v = {"ground_tris": sc.n_ground_tris, "tufts": sc.n_tufts,
