@@ -36,14 +36,14 @@ def test_gl_z_depth_of_a_flat_quad_is_exact():
     except Exception as e:                                     # noqa: BLE001
         pytest.skip(f"no headless EGL context: {e}")
     from hal.types import PinholeCalibration
-    from tools.bench_gl import FS, VS
-    prog = ctx.program(vertex_shader=VS, fragment_shader=FS)
+    from tools.bench_gl import make_program
+    prog = make_program(ctx, 4)                                # the bare ground: colour + z
     # a level camera 1.5 m above flat ground z = 0, looking along world x
     R = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])   # optical -> world
     cam = PinholeCalibration(64, 48, 50.0, 50.0, 31.5, 23.5)
     quad = np.array([[0, -50, 0, 0, 0, 1], [100, -50, 0, 0, 0, 1], [100, 50, 0, 0, 0, 1],
                      [0, 50, 0, 0, 0, 1]], np.float32)
-    vao = ctx.vertex_array(prog, [(ctx.buffer(quad.tobytes()), "3f 3f", "in_pos", "in_nrm")],
+    vao = ctx.vertex_array(prog, [(ctx.buffer(quad.tobytes()), "3f 12x", "in_pos")],
                            index_buffer=ctx.buffer(np.array([0, 1, 2, 0, 2, 3], np.int32).tobytes()))
     fbo = ctx.framebuffer(color_attachments=[ctx.renderbuffer((64, 48), 4),
                                              ctx.renderbuffer((64, 48), 1, dtype="f4")],
@@ -55,7 +55,6 @@ def test_gl_z_depth_of_a_flat_quad_is_exact():
     prog["K"].value = (50.0, 50.0, 32.0, 24.0)
     prog["WH"].value = (64, 48)
     prog["NF"].value = (0.2, 80.0)
-    prog["mode"].value = 3
     vao.render()
     z = np.frombuffer(fbo.read(components=1, attachment=1, dtype="f4"), np.float32)
     z = z.reshape(48, 64)[::-1]

@@ -58,33 +58,36 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+# One source, specialised per material with MODE (0 ground, 1 stubble tuft (instanced),
+# 2 obstacle, 3 untextured ground, 4 bare: constant colour + z): a program each, as a GL renderer
+# would have. (A single program branching on a uniform ran every branch: llvmpipe executes
+# both sides of a branch under a mask, and the bare ground cost 3x what its own program costs.)
 VS = """
-#version 330
 uniform mat3 Rt;          // world -> optical
 uniform vec3 Crel;        // camera centre relative to the geometry's origin
 uniform vec4 K;           // fx, fy, cx + 0.5, cy + 0.5
 uniform vec2 WH;
 uniform vec2 NF;          // near, far
-uniform int mode;         // 0 ground, 1 tuft (instanced), 2 obstacle
-uniform vec3 ocolour;
 in vec3 in_pos;
 in vec3 in_nrm;
+#if MODE == 1
 in vec4 in_inst;          // tuft: cx, cy, z ground, radius
 in float in_h;            // tuft: height
+out float v_g;
+#endif
 out vec3 v_pos;
 out vec3 v_nrm;
 out float v_z;
-out float v_g;
 void main() {
+#if MODE == 1
+    vec3 p = vec3(in_inst.x + in_inst.w * in_pos.x, in_inst.y + in_inst.w * in_pos.y,
+                  in_inst.z + in_h * in_pos.z);
+    vec3 n = normalize(vec3(in_nrm.xy * in_h, in_nrm.z * in_inst.w));
+    v_g = in_inst.z;
+#else
     vec3 p = in_pos;
     vec3 n = in_nrm;
-    v_g = 0.0;
-    if (mode == 1) {
-        p = vec3(in_inst.x + in_inst.w * in_pos.x, in_inst.y + in_inst.w * in_pos.y,
-                 in_inst.z + in_h * in_pos.z);
-        n = normalize(vec3(in_nrm.xy * in_h, in_nrm.z * in_inst.w));
-        v_g = in_inst.z;
-    }
+#endif
     vec3 q = Rt * (p - Crel);
     float z = q.z;
     float A = (NF.y + NF.x) / (NF.y - NF.x);
@@ -99,7 +102,6 @@ void main() {
 """
 
 FS = """
-#version 330
 uniform sampler2D tile0;  // the world's value-noise tiles (513 x 513, read as fastrender does)
 uniform sampler2D tile1;
 uniform sampler2D tile2;
@@ -108,7 +110,6 @@ uniform sampler2D gravel;
 uniform vec2 origin;      // world x, y of the geometry's origin
 uniform vec3 sun;
 uniform vec3 ocolour;
-uniform int mode;
 uniform int nsh;
 uniform vec4 sh[16];      // shadow casters: x, y (relative), r, top
 uniform float shreach[16];
@@ -119,7 +120,9 @@ uniform int seed;
 in vec3 v_pos;
 in vec3 v_nrm;
 in float v_z;
+#if MODE == 1
 in float v_g;
+#endif
 layout(location = 0) out vec4 f_col;
 layout(location = 1) out float f_z;
 
@@ -139,50 +142,49 @@ uint mix32(uint h) {
     h ^= h >> 16; h *= 0x85EBCA6Bu; h ^= h >> 13; h *= 0xC2B2AE35u; h ^= h >> 16; return h;
 }
 void main() {
-    if (mode == 4) {                             // the bare variant: no shading at all
-        f_col = vec4(0.5, 0.5, 0.5, 1.0);
-        f_z = v_z;
-        return;
-    }
+#if MODE == 4
+    f_col = vec4(0.5, 0.5, 0.5, 1.0);
+    f_z = v_z;
+#else
     vec2 w = v_pos.xy + origin;
     vec3 alb;
-    if (mode == 0) {
-        float patch = vnoise(tile0, w, 3.0);
-        float fine = vnoise(tile1, w, 0.35);
-        float grav = texture(gravel, w / (0.004 * 512.0)).r;
-        float st = texture(grass, vec2(w.y * 0.7 + 3.3, w.x * 0.7) / (0.003 * 512.0)).r;
-        float wl = clamp((st - 0.95) * 1.6 + (patch - 0.5) * 0.8, 0.0, 1.0);
-        float k = (0.75 + 0.25 * grav) * (0.85 + 0.3 * fine);
-        alb = mix(soil, litter, wl) * k;
-    } else if (mode == 1) {
-        float rel = clamp((v_pos.z - v_g) / 0.4, 0.0, 1.0);
-        float streak = texture(grass, vec2(w.x - w.y, (v_pos.z - v_g) * 0.12) / (0.002 * 512.0)).r;
-        float var_ = vnoise(tile2, w, 1.5);
-        alb = straw * (0.55 + 0.45 * rel) * (0.6 + 0.4 * streak) * (0.85 + 0.3 * var_);
-    } else if (mode == 3) {
-        alb = soil;                              // the floor variant: no texture at all
-    } else {
-        float tt = texture(gravel, vec2(w.x + w.y, v_pos.z) / (0.004 * 512.0)).r;
-        alb = ocolour * (0.9 + 0.1 * tt);
-    }
+#if MODE == 0
+    float patch = vnoise(tile0, w, 3.0);
+    float fine = vnoise(tile1, w, 0.35);
+    float grav = texture(gravel, w / (0.004 * 512.0)).r;
+    float st = texture(grass, vec2(w.y * 0.7 + 3.3, w.x * 0.7) / (0.003 * 512.0)).r;
+    float wl = clamp((st - 0.95) * 1.6 + (patch - 0.5) * 0.8, 0.0, 1.0);
+    float k = (0.75 + 0.25 * grav) * (0.85 + 0.3 * fine);
+    alb = mix(soil, litter, wl) * k;
+#elif MODE == 1
+    float rel = clamp((v_pos.z - v_g) / 0.4, 0.0, 1.0);
+    float streak = texture(grass, vec2(w.x - w.y, (v_pos.z - v_g) * 0.12) / (0.002 * 512.0)).r;
+    float var_ = vnoise(tile2, w, 1.5);
+    alb = straw * (0.55 + 0.45 * rel) * (0.6 + 0.4 * streak) * (0.85 + 0.3 * var_);
+#elif MODE == 3
+    alb = soil;                                  // the floor variant: no texture at all
+#else
+    float tt = texture(gravel, vec2(w.x + w.y, v_pos.z) / (0.004 * 512.0)).r;
+    alb = ocolour * (0.9 + 0.1 * tt);
+#endif
     vec3 n = normalize(v_nrm);
     float lam = max(dot(n, sun), 0.0);
     float lit = 1.0;
-    if (mode < 2) {
-        float horiz = length(sun.xy);
-        vec2 u = sun.xy / horiz;
-        float tan_e = sun.z / horiz;
-        for (int k = 0; k < nsh; k++) {
-            vec2 d = sh[k].xy - v_pos.xy;
-            float s = dot(d, u);
-            float r = sh[k].z;
-            if (s <= -r || s >= shreach[k]) continue;
-            float perp = abs(d.x * u.y - d.y * u.x);
-            if (perp >= r) continue;
-            float s_in = max(s - sqrt(max(r * r - perp * perp, 0.0)), 0.0);
-            if (v_pos.z + s_in * tan_e < sh[k].w) { lit = 0.0; break; }
-        }
+#if MODE == 0 || MODE == 1 || MODE == 3
+    float horiz = length(sun.xy);
+    vec2 u = sun.xy / horiz;
+    float tan_e = sun.z / horiz;
+    for (int k = 0; k < nsh; k++) {
+        vec2 d = sh[k].xy - v_pos.xy;
+        float s = dot(d, u);
+        float r = sh[k].z;
+        if (s <= -r || s >= shreach[k]) continue;
+        float perp = abs(d.x * u.y - d.y * u.x);
+        if (perp >= r) continue;
+        float s_in = max(s - sqrt(max(r * r - perp * perp, 0.0)), 0.0);
+        if (v_pos.z + s_in * tan_e < sh[k].w) { lit = 0.0; break; }
     }
+#endif
     vec3 rad = alb * (0.42 + 0.75 * lam * lit);
     // exposure with sensor noise (a hashed pseudo-Gaussian per pixel and channel)
     uvec2 pix = uvec2(gl_FragCoord.xy);
@@ -193,8 +195,33 @@ void main() {
     x += (1.2 + sqrt(max(x, 0.0)) * 0.12) * g;
     f_col = vec4(clamp(x / 255.0, 0.0, 1.0).bgr, 1.0);
     f_z = v_z;
+#endif
 }
 """
+
+
+def _pos_nrm(prog):
+    """The (format, names) of an x,y,z,nx,ny,nz vertex buffer for a program (a program that
+    does not use the normal has lost that attribute: skip its bytes)."""
+    if prog.get("in_nrm", None) is None:
+        return ("3f 12x", "in_pos")
+    return ("3f 3f", "in_pos", "in_nrm")
+
+
+def make_program(ctx, mode: int):
+    """The program of one material (MODE above)."""
+    head = f"#version 330\n#define MODE {int(mode)}\n"
+    return ctx.program(vertex_shader=head + VS, fragment_shader=head + FS)
+
+
+def _set(prog, name, value=None, data=None):
+    """Set a uniform the program has (the compiler drops the ones a material does not use)."""
+    if prog.get(name, None) is None:
+        return
+    if data is not None:
+        prog[name].write(data)
+    else:
+        prog[name].value = value
 
 
 def _die(msg: str) -> int:
@@ -369,11 +396,11 @@ class GLScene:
         C, R, _ = field._sensor_pose(cal.mount)
         yaw = math.atan2(R[1, 2], R[0, 2])
         self.origin = np.array([C[0], C[1]], np.float64)
-        self.prog = ctx.program(vertex_shader=VS, fragment_shader=FS)
+        self.progs = {m: make_program(ctx, m) for m in sorted({ground_mode, 1, 2})}
         Vg, Ig = ground_mesh(w, C, yaw, self.origin, half_deg, r_max, ground_stride)
         self.n_ground_tris = len(Ig) // 3
-        self.vao_ground = ctx.vertex_array(self.prog, [(ctx.buffer(Vg.tobytes()), "3f 3f",
-                                                        "in_pos", "in_nrm")],
+        pg = self.progs[ground_mode]
+        self.vao_ground = ctx.vertex_array(pg, [(ctx.buffer(Vg.tobytes()), *_pos_nrm(pg))],
                                            index_buffer=ctx.buffer(Ig.tobytes()))
         self.n_tufts = 0
         self.n_tuft_tris = 0
@@ -386,7 +413,7 @@ class GLScene:
             self.n_tufts = len(T)
             self.n_tuft_tris = len(T) * len(It) // 3
             self.vao_tuft = ctx.vertex_array(
-                self.prog, [(ctx.buffer(Vt.tobytes()), "3f 3f", "in_pos", "in_nrm"),
+                self.progs[1], [(ctx.buffer(Vt.tobytes()), "3f 3f", "in_pos", "in_nrm"),
                             (ctx.buffer(np.ascontiguousarray(T[:, :4]).tobytes()), "4f/i",
                              "in_inst"),
                             (ctx.buffer(np.ascontiguousarray(T[:, 4]).tobytes()), "f/i", "in_h")],
@@ -394,8 +421,9 @@ class GLScene:
         self.obs = []
         self.n_obs_tris = 0
         for V, I, col in obstacle_meshes(w, self.origin):
-            vao = ctx.vertex_array(self.prog, [(ctx.buffer(V.tobytes()), "3f 3f", "in_pos",
-                                                "in_nrm")], index_buffer=ctx.buffer(I.tobytes()))
+            vao = ctx.vertex_array(self.progs[2], [(ctx.buffer(V.tobytes()), "3f 3f", "in_pos",
+                                                    "in_nrm")],
+                                   index_buffer=ctx.buffer(I.tobytes()))
             self.obs.append((vao, col[::-1]))                        # BGR -> RGB
             self.n_obs_tris += len(I) // 3
         # the world's own noise tiles and photo textures
@@ -416,15 +444,7 @@ class GLScene:
             tx.repeat_x = tx.repeat_y = True
             tx.use(unit_)
             self.tex.append(tx)
-        p = self.prog
-        for name, u in (("tile0", 0), ("tile1", 1), ("tile2", 2), ("grass", 3), ("gravel", 4)):
-            p[name].value = u
-        p["origin"].value = tuple(self.origin)
         sun = np.asarray(field.lighting.sun, np.float64)
-        p["sun"].value = tuple(sun)
-        p["straw"].value = tuple(w.straw_bgr[::-1])
-        p["soil"].value = tuple(w.soil_bgr[::-1])
-        p["litter"].value = tuple(w.litter_bgr[::-1])
         # shadow casters as render._render_view_fast picks them (within range of the camera)
         horiz = math.hypot(sun[0], sun[1])
         tan_e = sun[2] / horiz
@@ -437,10 +457,21 @@ class GLScene:
                 continue
             sh.append((o.x - self.origin[0], o.y - self.origin[1], r, top))
             reach.append(rc)
-        p["nsh"].value = len(sh)
-        if sh:
-            p["sh"].write(np.array(sh + [(0, 0, 0, 0)] * (16 - len(sh)), np.float32).tobytes())
-            p["shreach"].write(np.array(reach + [0] * (16 - len(reach)), np.float32).tobytes())
+        for p in self.progs.values():
+            for name, u in (("tile0", 0), ("tile1", 1), ("tile2", 2), ("grass", 3),
+                            ("gravel", 4)):
+                _set(p, name, u)
+            _set(p, "origin", tuple(self.origin))
+            _set(p, "sun", tuple(sun))
+            _set(p, "straw", tuple(w.straw_bgr[::-1]))
+            _set(p, "soil", tuple(w.soil_bgr[::-1]))
+            _set(p, "litter", tuple(w.litter_bgr[::-1]))
+            _set(p, "nsh", len(sh))
+            if sh:
+                _set(p, "sh", data=np.array(sh + [(0, 0, 0, 0)] * (16 - len(sh)),
+                                            np.float32).tobytes())
+                _set(p, "shreach", data=np.array(reach + [0] * (16 - len(reach)),
+                                                 np.float32).tobytes())
         self.fbos = {}
 
     def _fbo(self, W, H):
@@ -464,23 +495,20 @@ class GLScene:
         fbo.use()
         fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)     # z = 0 where nothing is hit (sky)
         ctx.enable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
-        p = self.prog
-        p["Rt"].write(np.ascontiguousarray(R, np.float32).tobytes())   # column-major = R^T
-        p["Crel"].value = (C[0] - self.origin[0], C[1] - self.origin[1], C[2])
-        p["K"].value = (cam.fx * sc, cam.fy * sc, (cam.cx + 0.5) * sc, (cam.cy + 0.5) * sc)
-        p["WH"].value = (W, H)
-        p["NF"].value = (0.2, far)
-        p["seed"].value = seed
+        for p in self.progs.values():
+            _set(p, "Rt", data=np.ascontiguousarray(R, np.float32).tobytes())  # col-major: R^T
+            _set(p, "Crel", (C[0] - self.origin[0], C[1] - self.origin[1], C[2]))
+            _set(p, "K", (cam.fx * sc, cam.fy * sc, (cam.cx + 0.5) * sc, (cam.cy + 0.5) * sc))
+            _set(p, "WH", (W, H))
+            _set(p, "NF", (0.2, far))
+            _set(p, "seed", seed)
         # near to far as far as it is cheap (early depth test): obstacles, tufts (sorted by
         # distance when built), then the ground they stand on
-        p["mode"].value = 2
         for vao, col in self.obs:
-            p["ocolour"].value = col
+            _set(self.progs[2], "ocolour", col)
             vao.render()
         if self.vao_tuft is not None:
-            p["mode"].value = 1
             self.vao_tuft.render(instances=self.n_tufts)
-        p["mode"].value = self.ground_mode
         self.vao_ground.render()
         ctx.finish()
         t_draw = time.process_time()
