@@ -629,7 +629,6 @@ def main(argv=None) -> int:
             v["rgbd_check"] = {"covered_share": round(float(hit.mean()), 3),
                                "z_min": round(float(z[hit].min()), 2) if hit.any() else None,
                                "z_max": round(float(z[hit].max()), 2) if hit.any() else None}
-        sc.ctx.gc() if hasattr(sc.ctx, "gc") else None
         del sc
     res["gl"] = rows
     # the rest of a stereo cycle with today's code (numba laser + vehicle step), in this process
