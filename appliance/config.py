@@ -91,13 +91,19 @@ class GridConfig:
     stop_chain_radius_m: float = _f(0.3, lo=0.0, hi=2.0,
                                     doc="how far a chain (or a recurrence) may move in one "
                                         "cycle (0.3 m = 3 m/s at 10 Hz)")
-    stop_recur: float = _f(0.0, lo=0.0, hi=20.0,
+    stop_recur: float = _f(1.3, lo=0.0, hi=20.0,
                            doc="cell decision: a STOP needs an occupied stop-zone cell whose "
                                "recurrence reaches this: 1 for this cycle plus "
                                "stop_recur_decay^k for each earlier cycle k back in which a cell "
                                "within k x stop_chain_radius_m was occupied (tolerates flicker, "
-                               "unlike stop_at and stop_chain); less is a SLOW (0 = off)")
-    stop_recur_decay: float = _f(0.8, lo=0.0, hi=0.99)
+                               "unlike stop_at and stop_chain); less is a SLOW (0 = off, "
+                               "the papers' rule; docs/tracking.md 'stop_recur on the "
+                               "acceptance seeds')")
+    stop_recur_decay: float = _f(0.7, lo=0.0, hi=0.99)
+    stop_recur_now: tuple = _f(("laser",),
+                               doc="pipelines whose hits in a stop-zone cell make it a STOP at "
+                                   "once, recurrent or not (a laser's return is a range "
+                                   "measurement, not a match that flickers)")
 
 
 @dataclass(frozen=True)

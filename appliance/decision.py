@@ -186,6 +186,10 @@ class DecisionCore:
                 conf = chained if conf is None else (conf & chained)
             if g.stop_recur > 0:             # ... or occupied again, nearby, in the last cycles
                 recurs = self.grid.recur_at(grid_cells) >= g.stop_recur - 1e-6
+                now = [d.points_xy for n, d in detections.items()
+                       if n in g.stop_recur_now and d is not None and len(d.points_xy)]
+                if now:                      # ... or hit by a laser return this cycle
+                    recurs |= self.grid.hit_by(grid_cells, np.concatenate(now))
                 conf = recurs if conf is None else (conf & recurs)
             pic = Picture(grid_cells, assess(grid_cells, speed, self.cfg.zones, conf,
                                              cell_m=g.cell_m, curvature_1pm=kappa),

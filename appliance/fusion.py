@@ -139,6 +139,20 @@ class GridFusion:
         out[ok] = self.recur[ix[ok], iy[ok]]
         return out
 
+    def hit_by(self, cells_xy: np.ndarray, points_xy: np.ndarray) -> np.ndarray:
+        """Per cell (centres ``cells_xy``): does one of ``points_xy`` fall in it?"""
+        cells = np.asarray(cells_xy, dtype=np.float64).reshape(-1, 2)
+        pts = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
+        out = np.zeros(len(cells), bool)
+        if not len(cells) or not len(pts):
+            return out
+        px, py, pok = self.cell_index(pts)
+        cx, cy, cok = self.cell_index(cells)
+        hit = np.zeros((self.nx, self.ny), bool)
+        hit[px[pok], py[pok]] = True
+        out[cok] = hit[cx[cok], cy[cok]]
+        return out
+
     def chain_at(self, cells_xy: np.ndarray) -> np.ndarray:
         """The chain length (cycles) of the cells whose centres are ``cells_xy`` (0 off the
         grid or with chains off)."""

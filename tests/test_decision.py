@@ -232,7 +232,7 @@ def _drive(core, hits_at, n, speed=2.5, front=2.2):
 
 def _cfg(stop_at):
     return Config(gate=GateConfig(hold_off_s=1.0),
-                  grid=GridConfig(decay=0.5, occupied_at=1.4, stop_at=stop_at),
+                  grid=GridConfig(decay=0.5, occupied_at=1.4, stop_at=stop_at, stop_recur=0.0),
                   zones=ZonesConfig(front_x_m=2.2))
 
 
@@ -308,7 +308,7 @@ def test_stop_at_a_person_walking_into_the_path_costs_at_most_one_cycle():
 # --- [grid] stop_chain: a STOP needs an object that stayed (or moved slowly) ----------------
 def _chain_cfg(n, radius=0.3):
     return Config(gate=GateConfig(hold_off_s=1.0),
-                  grid=GridConfig(stop_chain=n, stop_chain_radius_m=radius),
+                  grid=GridConfig(stop_chain=n, stop_chain_radius_m=radius, stop_recur=0.0),
                   zones=ZonesConfig(front_x_m=2.2))
 
 
@@ -392,11 +392,15 @@ def test_stop_recur_stops_for_a_flickering_crate_that_stop_at_and_chains_lose():
         return next((k for k, (o, _) in enumerate(outs) if o.state is GateState.STOP
                      and k > 15), None)
     flicker = (20, 21, 23, 24)
-    assert first_stop(GridConfig(), flicker) == 21
-    assert first_stop(GridConfig(stop_at=1.7), flicker) is None
-    assert first_stop(GridConfig(stop_chain=3), flicker) is None
-    assert first_stop(GridConfig(stop_recur=1.3), flicker) == 24
-    assert first_stop(GridConfig(stop_recur=1.3), (20, 21)) is None
+    assert first_stop(GridConfig(stop_recur=0.0), flicker) == 21            # the papers' rule
+    assert first_stop(GridConfig(stop_at=1.7, stop_recur=0.0), flicker) is None
+    assert first_stop(GridConfig(stop_chain=3, stop_recur=0.0), flicker) is None
+    assert first_stop(GridConfig(stop_recur=1.3, stop_recur_decay=0.8), flicker) == 24
+    assert first_stop(GridConfig(stop_recur=1.3, stop_recur_decay=0.8), (20, 21)) is None
+    # the default (1.3, decay 0.7: 1 + 0.7^3 = 1.343 three cycles after) likewise
+    assert GridConfig().stop_recur == 1.3 and GridConfig().stop_recur_decay == 0.7
+    assert first_stop(GridConfig(), flicker) == 24
+    assert first_stop(GridConfig(), (20, 21)) is None
     with pytest.raises(Exception, match="stop_recur_decay"):
         from appliance.config import parse_config
         parse_config({"grid": {"stop_recur_decay": 1.5}}, "<t>")
@@ -440,10 +444,13 @@ def test_an_obstacle_first_seen_in_the_stop_zone_stops_on_the_same_cycle_as_the_
     tracks one cycle later (a new track needs two frames). A candidate with a cell in the stop
     zone and strong geometry (or laser) evidence now confirms at once."""
     frames = [_stereo(3.5, 0.0) for _ in range(4)]       # stop zone 2.6 .. 4.6 m at standstill
-    cells = _stop_cycles(Config(), frames)
+    cells = _stop_cycles(Config(grid=GridConfig(stop_recur=0.0)), frames)   # the papers' rule
     tracks = _stop_cycles(tracks_cfg(), frames)
     assert cells == [False, True, True, True]             # the grid's two hits
     assert tracks == cells
+    # the default cell decision (stop_recur) asks a first-seen stop-zone cell for one cycle
+    # more: what it costs (docs/tracking.md, "stop_recur on the acceptance seeds")
+    assert _stop_cycles(Config(), frames) == [False, False, True, True]
     # only in the stop zone, and only on strong evidence: a weak candidate there waits
     assert _stop_cycles(tracks_cfg(), [_stereo(3.5, 0.0, conf=0.3) for _ in range(4)])[1] is False
     assert _stop_cycles(tracks_cfg(stop_zone_strength=0.0), frames)[1] is False
@@ -501,7 +508,8 @@ def test_a_track_whose_cells_reach_into_the_stop_zone_is_a_stop():
             outs.append((pic, core.decide(k * DT, [], pic), core.gate.cause))
         return outs
 
-    cells = run(Config(gate=GateConfig(hold_off_s=0.3), zones=zones))
+    cells = run(Config(gate=GateConfig(hold_off_s=0.3), zones=zones,
+                       grid=GridConfig(stop_recur=0.0)))            # the papers' cell rule
     tracks = run(dataclasses.replace(tracks_cfg(), zones=zones))
     pic, out, cause = tracks[-1]
     assert len(pic.objects) == 1 and pic.objects[0].x_m > 4.62 + 0.02   # its centre: outside
@@ -510,3 +518,42 @@ def test_a_track_whose_cells_reach_into_the_stop_zone_is_a_stop():
     assert [p.verdict.in_stop > 0 for p, _, _ in tracks] == [False] + [True] * 9
     assert out.state is GateState.STOP and cause == "obstacle"
     assert "track" in out.reason and "in the stop zone" in out.reason
+
+
+def test_stop_recur_the_default_waits_one_cycle_for_a_camera_cell_but_not_for_a_laser_return():
+    """The default cell decision (stop_recur 1.3, decay 0.7): a stop-zone cell occupied in one
+    cycle only is a SLOW ("unconfirmed"), occupied again it is a STOP; a cell with a laser
+    return is a STOP on its first occupied cycle (``stop_recur_now``: a range measurement
+    does not flicker like a match). The papers' rule (stop_recur = 0) stops on the first
+    occupied cycle for both."""
+    def first_stop(cfg, source):       # the zone verdict's (the gate holds its boot STOP)
+        core = DecisionCore(cfg)
+        for k in range(4):
+            pts = np.array([[4.05, 0.05]]) if source == "laser" else blob(4.0, 0.0)
+            pic = core.perceive({source: Detections(points_xy=pts)}, VehicleState(k * DT, k),
+                                k * DT)
+            if pic.verdict.in_stop > 0:
+                return k, pic.verdict
+            last = pic.verdict
+        return None, last
+    default = Config(gate=GateConfig(hold_off_s=0.3))
+    papers = Config(gate=GateConfig(hold_off_s=0.3), grid=GridConfig(stop_recur=0.0))
+    assert first_stop(papers, "stereo-novelty")[0] == 1          # the grid's two hits
+    assert first_stop(default, "stereo-novelty")[0] == 2
+    core = DecisionCore(default)                   # the cycle between is a SLOW, and says why
+    for k in range(2):
+        pic = core.perceive({"stereo-novelty": Detections(points_xy=blob(4.0, 0.0))},
+                            VehicleState(k * DT, k), k * DT)
+    assert pic.verdict.in_stop == 0 and pic.verdict.in_slow > 0
+    assert "unconfirmed obstacle" in pic.verdict.slow_reason
+    # a laser return: no cycle more than the papers' rule (the grid's two hits)
+    assert first_stop(default, "laser")[0] == first_stop(papers, "laser")[0] == 1
+    # a config that lists no source waits for the laser too
+    none_now = Config(gate=GateConfig(hold_off_s=0.3), grid=GridConfig(stop_recur_now=()))
+    assert first_stop(none_now, "laser")[0] == 2
+    from appliance.config import parse_config
+    from hal.errors import ConfigError
+    assert parse_config({"grid": {"stop_recur_now": ["laser", "rgbd"]}}, "<t>").grid \
+        .stop_recur_now == ("laser", "rgbd")
+    with pytest.raises(ConfigError, match="stop_recur_now"):
+        parse_config({"grid": {"stop_recur_now": "laser"}}, "<t>")
