@@ -59,6 +59,11 @@ class GridFusion:
             return
         dx = vehicle.speed_mps * dt_s
         dth = vehicle.yaw_rate_radps * dt_s
+        if not (math.isfinite(dx) and math.isfinite(dth)):
+            # the links and the run-folder reader refuse non-finite values before they get
+            # here; should one slip through, the grid keeps what it holds where it is (moving
+            # it by NaN would wipe every cell: a CLEAR with obstacles ahead)
+            return
         if abs(dx) < 1e-6 and abs(dth) < 1e-9:
             return
         # a point fixed in the world at p (old frame) is at R(-dth) (p - t) in the new frame

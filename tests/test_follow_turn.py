@@ -180,3 +180,15 @@ def test_the_snapshot_and_the_console_draw_the_zones_bent():
                                               for dx in (-0.02, 0, 0.02)
                                               for dy in (-0.02, 0, 0.02))]
     assert any(near_far)
+
+
+def test_a_non_finite_yaw_rate_or_speed_never_wipes_the_grid():
+    """Defence in depth (the links quarantine such values first): moving the grid by NaN
+    would empty it, a CLEAR with an obstacle ahead."""
+    for bad in (dict(yaw_rate_radps=math.nan), dict(speed_mps=math.nan)):
+        core = DecisionCore(_gh())
+        out, pic = _turn(core, _blob((F + 1.0, 0.0)), n=3, speed=0.0, yaw_rate=0.0)
+        assert pic.verdict.in_stop > 0
+        v = VehicleState(3 * DT, 3, **{"speed_mps": 0.5, "yaw_rate_radps": 0.5, **bad})
+        pic = core.perceive({"rgbd": Detections(points_xy=_blob((F + 1.0, 0.0)))}, v, 3 * DT)
+        assert len(pic.cells_xy) and pic.verdict.in_stop > 0     # wiped, one hit is too few
