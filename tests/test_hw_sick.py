@@ -214,10 +214,16 @@ class EmulatorProcess:
             [sys.executable, "-m", "drivers.emulators.sick_lms1xx", "--port", str(port),
              "--scene", scene, "--frames", str(frames)], cwd=str(ROOT), stdin=subprocess.PIPE,
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        line = self.proc.stdout.readline()
-        if not line:
-            raise RuntimeError("emulator did not start: " + self.proc.stderr.read())
-        self.port = json.loads(line)["port"]
+        # its "listening" line: a daemon that reconnects at once (the cable plugged back in on
+        # the same port) can be logged as a client before it
+        while True:
+            line = self.proc.stdout.readline()
+            if not line:
+                raise RuntimeError("emulator did not start: " + self.proc.stderr.read())
+            ev = json.loads(line)
+            if ev.get("event") == "listening":
+                self.port = ev["port"]
+                break
 
     def cmd(self, line):
         self.proc.stdin.write(line + "\n")

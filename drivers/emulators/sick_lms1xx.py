@@ -398,8 +398,15 @@ def main(argv=None) -> int:
     ap.add_argument("--object", type=float, default=None, help="a post this far ahead (m)")
     a = ap.parse_args(argv)
 
+    out_lock = threading.Lock()
+
     def log(**ev):
-        print(json.dumps(ev), flush=True)
+        # one write per event, under a lock: the serving thread logs too, and print() writes
+        # the text and its newline apart, so two events could share a line (seen in CI: a
+        # client's "client" event glued to "listening" when the daemon reconnected at once)
+        with out_lock:
+            sys.stdout.write(json.dumps(ev) + "\n")
+            sys.stdout.flush()
 
     geo, scans = sim_scans(a.scene, max(1, a.frames), a.seed, a.scan_hz)
     emu = SickLms1xxEmulator(geo, scans, host=a.host, port=a.port, scan_hz=a.scan_hz,

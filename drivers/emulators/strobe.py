@@ -186,8 +186,15 @@ def main(argv=None) -> int:
     g.add_argument("--pty", action="store_true", help="make a pseudo-terminal and print its path")
     a = ap.parse_args(argv)
 
+    out_lock = threading.Lock()
+
     def log(**ev):
-        print(json.dumps(ev), flush=True)
+        # one write per event, under a lock: the serving thread logs too, and print() writes
+        # the text and its newline apart, so two events could share a line (seen in CI: a
+        # client's "client" event glued to "listening" when the daemon reconnected at once)
+        with out_lock:
+            sys.stdout.write(json.dumps(ev) + "\n")
+            sys.stdout.flush()
 
     if a.pty:
         import pty
