@@ -205,8 +205,7 @@ def grid_panel(res, evidence: np.ndarray, cfg: Config) -> np.ndarray:
     # zones
     speed = res.inputs.vehicle.speed_mps if res.inputs and res.inputs.vehicle else 0.0
     stop = stop_length(speed, z)
-    slow = stop + z.slow_extra_m
-    f, hw = z.front_x_m, z.half_width_m
+    f = z.front_x_m
     draw_zones(img, px, z, stop, curvature_of(res))
     for e in z.exclusion:
         cv2.rectangle(img, px(e.x_max_m, e.y_max_m), px(e.x_min_m, e.y_min_m), (200, 120, 0), 1)

@@ -510,7 +510,8 @@ class Tracker:
     # -- one cycle -------------------------------------------------------------------------
     def update(self, detections: dict[str, Detections], vehicle: VehicleState | None,
                now_ns: int, occupied: np.ndarray | None = None,
-               stop_zone: tuple | None = None) -> list[TrackView]:
+               stop_zone: tuple[float, float, float, float] | None = None
+               ) -> list[TrackView]:
         ms = measurements(detections, self.grid, self.cfg, occupied)
         return self.update_measurements(ms, vehicle, now_ns, stop_zone)
 
@@ -523,8 +524,7 @@ class Tracker:
             return True
         if c.stop_zone_strength > 0 and stop_zone is not None and len(t.cells_xy):
             s = max(t.strength_in.get("geometry", 0.0), t.strength_in.get("laser", 0.0))
-            x0, x1, hw = stop_zone[:3]
-            kappa = stop_zone[3] if len(stop_zone) > 3 else 0.0   # bent along a turn
+            x0, x1, hw, kappa = stop_zone        # kappa: the zones bent along a turn
             rect = {"x_min_m": x0, "x_max_m": x1, "half_width_m": hw}
             cell = self.grid.cell_m         # any part of a cell in the stop zone (zones.py)
             if s >= c.stop_zone_strength - 1e-9 and bool(
@@ -534,7 +534,8 @@ class Tracker:
         return False
 
     def update_measurements(self, ms: list[Measurement], vehicle: VehicleState | None,
-                            now_ns: int, stop_zone: tuple | None = None
+                            now_ns: int,
+                            stop_zone: tuple[float, float, float, float] | None = None
                             ) -> list[TrackView]:
         c = self.cfg
         dt = 0.0 if self._last_ns is None else (now_ns - self._last_ns) / 1e9

@@ -96,6 +96,16 @@ def path_rect(z: ZonesConfig, reach_m: float = 1000.0) -> dict:
 STRAIGHT_1PM = 1e-3
 
 
+def _arc(curvature_1pm: float, front_x_m: float) -> tuple[float, float, float] | None:
+    """(sign of the turn, the origin's turning radius, the front centre's radius), or None
+    for a straight path."""
+    k = float(curvature_1pm)
+    if abs(k) < STRAIGHT_1PM:
+        return None
+    r0 = 1.0 / abs(k)
+    return (1.0 if k > 0 else -1.0), r0, math.hypot(front_x_m, r0)
+
+
 def to_path_frame(xy, curvature_1pm: float, front_x_m: float) -> np.ndarray:
     """Vehicle-frame points (N, 2) in the frame of the path the vehicle's front drives at a
     constant ``curvature_1pm`` (1/m, positive turning left: the vehicle frame's y is to the
@@ -107,12 +117,10 @@ def to_path_frame(xy, curvature_1pm: float, front_x_m: float) -> np.ndarray:
     in one go): a point behind the front on its circle, or more than half a turn ahead of it,
     has ``x`` < ``front_x_m`` and is in no zone."""
     p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-    k = float(curvature_1pm)
-    if abs(k) < STRAIGHT_1PM or not len(p):
+    arc = _arc(curvature_1pm, front_x_m)
+    if arc is None or not len(p):
         return p
-    sgn = 1.0 if k > 0 else -1.0
-    r0 = 1.0 / abs(k)                          # the origin's turning radius; centre (0, sgn r0)
-    rf = math.hypot(front_x_m, r0)             # the front centre's radius
+    sgn, r0, rf = arc                          # the turn's centre is (0, sgn r0)
     yl = sgn * p[:, 1]                         # as if turning left
     ang = np.arctan2(p[:, 0], r0 - yl)         # angle about the centre, origin at 0, forward +
     d = ang - math.atan2(front_x_m, r0)
@@ -127,12 +135,10 @@ def to_path_frame(xy, curvature_1pm: float, front_x_m: float) -> np.ndarray:
 def from_path_frame(xy, curvature_1pm: float, front_x_m: float) -> np.ndarray:
     """The inverse of :func:`to_path_frame`: path-frame points back in the vehicle frame."""
     q = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-    k = float(curvature_1pm)
-    if abs(k) < STRAIGHT_1PM or not len(q):
+    arc = _arc(curvature_1pm, front_x_m)
+    if arc is None or not len(q):
         return q
-    sgn = 1.0 if k > 0 else -1.0
-    r0 = 1.0 / abs(k)
-    rf = math.hypot(front_x_m, r0)
+    sgn, r0, rf = arc
     a = math.atan2(front_x_m, r0) + (q[:, 0] - front_x_m) / rf
     rho = rf - sgn * q[:, 1]
     return np.stack([rho * np.sin(a), sgn * (r0 - rho * np.cos(a))], axis=1)
@@ -142,9 +148,9 @@ def zone_outline(x_min_m: float, x_max_m: float, half_width_m: float, curvature_
                  front_x_m: float, step_m: float = 0.1) -> np.ndarray:
     """A zone rectangle (path frame) as a closed outline in the vehicle frame, bent along the
     turn when there is one (for drawing: the snapshot, the console)."""
-    if abs(curvature_1pm) >= STRAIGHT_1PM:      # the zones end after half a turn
-        half_turn = front_x_m + math.pi * math.hypot(front_x_m, 1.0 / abs(curvature_1pm))
-        x_max_m = max(x_min_m, min(x_max_m, half_turn))
+    arc = _arc(curvature_1pm, front_x_m)
+    if arc is not None:                        # the zones end after half a turn
+        x_max_m = max(x_min_m, min(x_max_m, front_x_m + math.pi * arc[2]))
     n = max(2, int(math.ceil((x_max_m - x_min_m) / step_m)) + 1)
     xs = np.linspace(x_min_m, x_max_m, n)
     left = np.stack([xs, np.full(n, half_width_m)], axis=1)
@@ -157,11 +163,10 @@ def heading_to_path_frame(xy, yaw_rad, curvature_1pm: float) -> np.ndarray:
     :func:`to_path_frame`: less the turn of the path's tangent there."""
     p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     yaw = np.broadcast_to(np.asarray(yaw_rad, dtype=np.float64), (len(p),))
-    k = float(curvature_1pm)
-    if abs(k) < STRAIGHT_1PM or not len(p):
+    arc = _arc(curvature_1pm, 0.0)
+    if arc is None or not len(p):
         return np.array(yaw, dtype=np.float64)
-    sgn = 1.0 if k > 0 else -1.0
-    r0 = 1.0 / abs(k)
+    sgn, r0, _ = arc
     return yaw - sgn * np.arctan2(p[:, 0], r0 - sgn * p[:, 1])
 
 

@@ -8,10 +8,8 @@ import dataclasses
 import cv2
 import numpy as np
 
-from appliance.snapshot import (STATE_BGR, _label, camera_panel, curvature_of, draw_zones,
-                                project_cells)
+from appliance.snapshot import _label, camera_panel, curvature_of, draw_zones, project_cells
 from appliance.zones import stop_length
-from hal.types import GateState
 
 GRID_PX = 480           # height of the grid picture
 TRACK_BGR = (255, 160, 40)
@@ -119,7 +117,7 @@ def grid_view(res, evidence: np.ndarray, cfg, tracks=(), height_px: int = GRID_P
     veh = res.inputs.vehicle if res is not None and res.inputs is not None else None
     speed = veh.speed_mps if veh is not None else 0.0
     stop = stop_length(speed, z)
-    f, hw = z.front_x_m, z.half_width_m
+    f = z.front_x_m
     draw_zones(img, px, z, stop, curvature_of(res))
     for e in z.exclusion:
         cv2.rectangle(img, px(e.x_max_m, e.y_max_m), px(e.x_min_m, e.y_min_m), (200, 120, 0), 1)
