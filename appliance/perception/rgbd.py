@@ -90,11 +90,6 @@ class RgbdPipelineConfig(CueOptions):
     texture_window_px: int = _f(20, lo=3, hi=100)
     texture_threshold: float = _f(0.5, lo=0.0, hi=2.0, doc="chi-square distance for a class")
     min_pixels: int = _f(30, lo=1, hi=100000, doc="smallest obstacle group")
-    min_area_m2: float = _f(0.0, lo=0.0, hi=1.0,
-                            doc="smallest obstacle group in square metres (its pixels at "
-                                "their mean depth): min_pixels is a different size at every "
-                                "range -- 30 pixels are 2 x 2 cm at 1.4 m and 7 x 7 cm at 4.5 "
-                                "m; 0 = off (docs/rgbd.md 'Small groups near the vehicle')")
     texture_min_pixels: int = _f(401, lo=0, hi=100000,
                                  doc="smallest texture group (0 = min_pixels, the paper); "
                                      "texture decides per texture_window_px window, so more "
@@ -193,34 +188,8 @@ PAPER_RULE = {
     "texture": "after-colour", "texture_scope": "suspected", "texture_undefined": True,
     "contact_px": 1, "texture_contact_px": 0, "ground_max_height_m": 0.0, "ground_classes": (),
     "bottom_grounded": False, "min_height_m": 0.0, "holes": False,
-    "ground_class_contact": False, "texture_min_pixels": 0, "min_area_m2": 0.0,
+    "ground_class_contact": False, "texture_min_pixels": 0,
 }
-
-
-def metric_groups(mask: np.ndarray, depth: np.ndarray, area_per_px: float, min_area_m2: float,
-                  n: int | None = None) -> tuple[np.ndarray, int]:
-    """The 8-connected groups of ``mask`` whose area in square metres -- their pixel count x
-    (their mean depth)^2 x ``area_per_px`` (1 / (fx fy)) -- is at least ``min_area_m2``; a group
-    with no pixel of depth is kept (its size is unknown). Returns (mask, number of groups)."""
-    if n == 0 or not mask.any():
-        return mask, 0 if n is None else n
-    k, labels = cv2.connectedComponents(mask.view(np.uint8) if mask.dtype == bool
-                                        else mask.astype(np.uint8), connectivity=8,
-                                        ltype=cv2.CV_32S)
-    lab = labels[mask]
-    z = np.asarray(depth, np.float32)[mask]
-    valid = np.isfinite(z) & (z > 0)
-    px = np.bincount(lab, minlength=k).astype(np.float64)
-    nz = np.bincount(lab[valid], minlength=k).astype(np.float64)
-    sz = np.bincount(lab[valid], weights=z[valid].astype(np.float64), minlength=k)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        zm = sz / nz
-    area = px * zm * zm * float(area_per_px)
-    keep = (nz == 0) | (area >= min_area_m2)
-    keep[0] = False
-    if keep[1:].all():
-        return mask, k - 1
-    return keep[labels] & mask, int(keep.sum())
 
 
 @dataclass
@@ -489,18 +458,6 @@ class RgbdPipeline(Pipeline):
                 if o.texture == "after-colour" and d.n_colour > 0:
                     tmap = self._texture_map(color, sus)
                     d = decide(sus, surface, cmap, tmap, self.rule, height, raised, learned)
-        if o.min_area_m2 > 0:
-            fa = np.float32(1.0 / (cam.fx * cam.fy))
-            d.colour, d.n_colour = metric_groups(d.colour, depth, fa, o.min_area_m2, d.n_colour)
-            if d.texture is not None:
-                d.texture, d.n_texture = metric_groups(d.texture, depth, fa, o.min_area_m2,
-                                                       d.n_texture)
-            if d.learned is not None:
-                d.learned, d.n_learned = metric_groups(d.learned, depth, fa, o.min_area_m2,
-                                                       d.n_learned)
-            if d.raised is not None:
-                d.raised, d.n_raised = metric_groups(d.raised, depth, fa, o.min_area_m2,
-                                                     d.n_raised)
         col_obs, tex_obs, n_col, n_tex = d.colour, d.texture, d.n_colour, d.n_texture
         if d.learned is not None and d.n_learned and o.cue_depth_span_m > 0:
             d.learned = self._depth_trim(d.learned, depth, o.cue_depth_span_m)
