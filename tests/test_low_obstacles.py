@@ -72,14 +72,45 @@ def test_person_lying_in_the_path_is_below_the_band_and_held_by_the_low_band(app
     assert sum(hits_low) >= 3, hits_low
 
 
+def test_compact_novelty_keeps_the_lying_person(approach):
+    """``low_band_max_novel_share``: low points count only in novel regions of at most that
+    share of the image. The person lying in the path is such a region: it is held as with the
+    plain low band (a patch of soil of a new colour, whose low stubble locked the plain low
+    band in, is not: docs/front-end.md 'Low obstacles')."""
+    hits, _ = _run(approach, low_band_min_m=0.2, low_band_max_novel_share=0.1)
+    assert sum(hits) >= 3, hits
+
+
+def test_compact_novelty_mask_drops_large_regions():
+    pipe = StereoNoveltyPipeline(dataclasses.replace(StereoNoveltyConfig(), model_state="off"),
+                                 background=False)
+    m = np.zeros((100, 200), np.uint8)
+    m[10:20, 10:30] = 255            # 200 px = 1 % of the image
+    m[40:90, 50:150] = 255           # 5000 px = 25 %
+    pipe._source_masks = {"novelty": m}
+    pipe._compact_novelty(0.1)
+    c = pipe._source_masks["novelty-compact"]
+    assert c[10:20, 10:30].all() and not c[40:90, 50:150].any()
+    assert int((c > 0).sum()) == 200
+    px = np.array([[15.0, 12.0], [60.0, 50.0]])        # (u, v): in the small, in the large
+    assert pipe._other_cue(px, 1.0, ("novelty-compact",)).tolist() == [True, False]
+    assert pipe._other_cue(px, 1.0, ("novelty",)).tolist() == [True, True]
+    pipe._source_masks = {"novelty": np.zeros((100, 200), np.uint8)}
+    pipe._compact_novelty(0.1)                          # nothing novel: no compact mask
+    assert "novelty-compact" not in pipe._source_masks
+    pipe.close()
+
+
 def test_low_band_option_is_read_and_checked():
     from appliance.config import parse_config, pipeline_options
     from hal.errors import ConfigError
     cfg = parse_config({"perception": {"pipelines": ["stereo-novelty"],
                                        "stereo-novelty": {"low_band_min_m": 0.25,
-                                                          "low_band_feedback": False}}})
+                                                          "low_band_feedback": False,
+                                                          "low_band_max_novel_share": 0.1}}})
     o = pipeline_options(cfg, "stereo-novelty")
-    assert (o.low_band_min_m, o.low_band_feedback) == (0.25, False)
+    assert (o.low_band_min_m, o.low_band_feedback, o.low_band_max_novel_share) == \
+        (0.25, False, 0.1)
     d = StereoNoveltyConfig()
     assert (d.low_band_min_m, d.low_band_feedback) == (0.0, True)      # off by default
     with pytest.raises(ConfigError) as e:

@@ -189,6 +189,14 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
                                    "learned cue (not the depth cue: geometry alone) put their "
                                    "pixel into matching; the depth cue still raises cells by "
                                    "band_min_m. 0 = off (docs/front-end.md 'Low obstacles')")
+    low_band_max_novel_share: float = _f(0.0, lo=0.0, hi=1.0,
+                                         doc="low_band_min_m: a low point raised by novelty "
+                                             "counts only where its novel region (connected, "
+                                             "in the image) covers at most this share of the "
+                                             "image: a lying person is a compact region, a "
+                                             "patch of soil of a new colour with its stubble a "
+                                             "large one (the low band's lock-in, "
+                                             "docs/front-end.md 'Low obstacles'); 0 = any")
     low_band_feedback: bool = _f(True, doc="low_band_min_m: its points keep their cells out of "
                                             "the novelty model's update like any obstacle point "
                                             "(false: they are learnt, so low stubble in a novel "
@@ -520,7 +528,11 @@ class StereoNoveltyPipeline(Pipeline):
             if low.any():
                 idx = np.flatnonzero(low)
                 low_added = np.zeros(len(pts), bool)
-                low_added[idx[self._other_cue(px[idx], k / float(kd))]] = True
+                names = ("novelty", "learned")
+                if o.low_band_max_novel_share > 0:
+                    names = ("novelty-compact", "learned")
+                    self._compact_novelty(o.low_band_max_novel_share)
+                low_added[idx[self._other_cue(px[idx], k / float(kd), names)]] = True
                 keep |= low_added
         if o.support_min > 0 and keep.any():
             idx = np.flatnonzero(keep)
@@ -661,6 +673,19 @@ class StereoNoveltyPipeline(Pipeline):
                           max_range_m=o.stalk_max_range_m)
         keep[idx[st]] = False
         return int(st.sum())
+
+    def _compact_novelty(self, max_share: float) -> None:
+        """``_source_masks['novelty-compact']``: the novelty mask's connected regions that
+        cover at most ``max_share`` of the image."""
+        m = self._source_masks.get("novelty")
+        if m is None or not m.any():
+            return
+        n, labels = cv2.connectedComponents((m > 0).view(np.uint8), connectivity=8,
+                                            ltype=cv2.CV_32S)
+        area = np.bincount(labels.ravel(), minlength=n)
+        small = area <= max_share * m.size
+        small[0] = False
+        self._source_masks["novelty-compact"] = small[labels].view(np.uint8) * np.uint8(255)
 
     def _other_cue(self, px, f: float, names=("novelty", "learned")):
         """Per point (pixels ``px`` at matching resolution; ``f``: matching px -> descriptor
