@@ -63,15 +63,13 @@ def _run(frames, **opts):
 
 
 def test_person_lying_in_the_path_is_below_the_band_and_held_by_the_low_band(approach):
-    hits, heights = _run(approach, low_band_min_m=0.0)  # the paper's band alone
+    hits, heights = _run(approach)                     # the defaults: the paper's band
     assert len(hits) >= 10
     assert not any(hits), f"the band's floor (0.5 m) is above a person lying down: {hits}"
     # the dense points on the person (where they were matched at all) are below the floor
     assert len(heights) and np.percentile(heights, 95) < 0.5
-    hits_low, _ = _run(approach, low_band_min_m=0.2, low_band_max_novel_share=0.0)
+    hits_low, _ = _run(approach, low_band_min_m=0.2)
     assert sum(hits_low) >= 3, hits_low
-    hits_default, _ = _run(approach)                   # the default: low band, compact rule
-    assert sum(hits_default) >= 3, hits_default
 
 
 def test_compact_novelty_keeps_the_lying_person(approach):
@@ -114,12 +112,7 @@ def test_low_band_option_is_read_and_checked():
     assert (o.low_band_min_m, o.low_band_feedback, o.low_band_max_novel_share) == \
         (0.25, False, 0.1)
     d = StereoNoveltyConfig()
-    # on by default since the eleventh session, with the compact-region rule; off in the
-    # papers' configuration
-    assert (d.low_band_min_m, d.low_band_feedback, d.low_band_max_novel_share) == \
-        (0.2, True, 0.1)
-    from appliance.perception.stereo_novelty import PRE_ISSUE_14
-    assert PRE_ISSUE_14["low_band_min_m"] == 0.0
+    assert (d.low_band_min_m, d.low_band_feedback) == (0.0, True)      # off by default
     with pytest.raises(ConfigError) as e:
         parse_config({"perception": {"pipelines": ["stereo-novelty"],
                                      "stereo-novelty": {"low_band_min_m": -0.1}}})

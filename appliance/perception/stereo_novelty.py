@@ -180,18 +180,16 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
                                   doc="stalk_max_width_m judges only points at most this far "
                                       "ahead (vehicle x): farther, a thing 0.2 m across is a "
                                       "few pixels wide and its points too sparse for a width")
-    # On by default since the eleventh session, with low_band_max_novel_share: alone it held
-    # low obstacles the band's floor ran over but locked in on soil of a new colour (stubble
-    # 0.2-0.45 m in novel cells; one night drive stood); with the compact-region rule it
-    # halved the training campaign's collisions (12 -> 6, all people lying and dogs) for 4
-    # more false stops in 1.33 h (docs/front-end.md "Low obstacles")
-    low_band_min_m: float = _f(0.2, lo=0.0, hi=10.0,
+    # Off by default: measured on training drives it held five of seven low obstacles the
+    # defaults ran over, but added false stops by day (real stubble 0.2-0.45 m in novel cells)
+    # and kept one night drive standing (docs/front-end.md "Low obstacles")
+    low_band_min_m: float = _f(0.0, lo=0.0, hi=10.0,
                                doc="issue #14 (lying people, dogs): obstacle points from this "
                                    "height up to band_min_m count too when novelty or the "
                                    "learned cue (not the depth cue: geometry alone) put their "
                                    "pixel into matching; the depth cue still raises cells by "
                                    "band_min_m. 0 = off (docs/front-end.md 'Low obstacles')")
-    low_band_max_novel_share: float = _f(0.1, lo=0.0, hi=1.0,
+    low_band_max_novel_share: float = _f(0.0, lo=0.0, hi=1.0,
                                          doc="low_band_min_m: a low point raised by novelty "
                                              "counts only where its novel region (connected, "
                                              "in the image) covers at most this share of the "
@@ -209,8 +207,7 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
 # Figure-5 / reproduction tables of docs/stereo-novelty.md: tools/experiments_stereo.py pins
 # them in its rows)
 PRE_ISSUE_14 = {"boot_guard": False, "pad_left": False, "support_min": 0.0, "uniqueness": 10,
-                "dark_level": 0.0, "support_known_min": 0.0, "stalk_max_width_m": 0.0,
-                "low_band_min_m": 0.0}
+                "dark_level": 0.0, "support_known_min": 0.0, "stalk_max_width_m": 0.0}
 
 
 def rescale_mask(mask: np.ndarray, f: int, k: int, out_hw: tuple[int, int]) -> np.ndarray:
