@@ -68,7 +68,7 @@ def test_person_lying_in_the_path_is_below_the_band_and_held_by_the_low_band(app
     assert not any(hits), f"the band's floor (0.5 m) is above a person lying down: {hits}"
     # the dense points on the person (where they were matched at all) are below the floor
     assert len(heights) and np.percentile(heights, 95) < 0.5
-    hits_low, _ = _run(approach, low_band_min_m=0.2)
+    hits_low, _ = _run(approach, low_band_min_m=0.2, low_band_max_novel_share=0.0)
     assert sum(hits_low) >= 3, hits_low
 
 
@@ -113,6 +113,7 @@ def test_low_band_option_is_read_and_checked():
         (0.25, False, 0.1)
     d = StereoNoveltyConfig()
     assert (d.low_band_min_m, d.low_band_feedback) == (0.0, True)      # off by default
+    assert d.low_band_max_novel_share == 0.1          # ... and compact when turned on
     with pytest.raises(ConfigError) as e:
         parse_config({"perception": {"pipelines": ["stereo-novelty"],
                                      "stereo-novelty": {"low_band_min_m": -0.1}}})
