@@ -223,3 +223,54 @@ def test_greenhouse_u_turns_keep_the_vehicle_out_of_the_bush_rows():
         # the lanes (with their run-outs) are where the route is straight
         for s0, s1 in sc.lanes:
             assert s1 - s0 >= sc.params["lane_length_m"] + 2 * 1.2 - 1.0
+
+
+def test_thin_scene_is_the_coverage_field_with_thin_short_things_in_the_path():
+    """stubble-thin: the stubble-coverage field of the seed (the stalk rule's false stops are
+    tufts of that field) with stakes, children and dogs facing the vehicle in the path: what
+    a rule against tufts must not drop."""
+    c, t, n = (build_scene(k, 5) for k in ("stubble-coverage", "stubble-thin",
+                                            "stubble-thin-night"))
+    assert {k: v for k, v in t.params.items() if k not in ("obstacles", "walkers")} == \
+        {k: v for k, v in c.params.items() if k not in ("obstacles", "walkers")}
+    assert t.world.waves.tobytes() == c.world.waves.tobytes()
+    assert t.world.banks.tobytes() == c.world.banks.tobytes()
+    assert _sig(t)[1:] == _sig(n)[1:] and n.illumination == "night-strobe"
+    assert t.illumination == "day" and _sig(t) == _sig(build_scene("stubble-thin", 5))
+    obs = [o for s in range(6) for o in build_scene("stubble-thin", s).obstacles]
+    assert {o.cls for o in obs} == {"stake", "child", "dog-head-on"}
+    assert all(o.placement == "in-path" and not o.moving for o in obs)
+    across = {"stake": (0.08, 0.14), "child": (0.25, 0.32), "dog-head-on": (0.25, 0.35)}
+    tall = {"stake": (0.6, 1.3), "child": (0.95, 1.25), "dog-head-on": (0.45, 0.7)}
+    for o in obs:
+        assert across[o.cls][0] <= o.width_m <= across[o.cls][1], (o.cls, o.width_m)
+        assert tall[o.cls][0] <= o.height_m <= tall[o.cls][1], (o.cls, o.height_m)
+    for o in obs:
+        if o.cls == "dog-head-on":      # its length along the lane: narrow to the vehicle
+            assert abs(math.cos(math.radians(o.yaw_deg))) > math.cos(math.radians(16))
+    assert set(t.in_path_ids()) == {o.id for o in t.obstacles}
+
+
+def test_a_thin_stake_is_drawn_by_the_stereo_camera_at_8_m():
+    """The renderer marches in steps of ~0.6 % of the range: the scene's thinnest stake (8 cm)
+    must still be a solid column of pixels where the stalk rule looks (8 m)."""
+    f = SimField("stubble-thin", 5, sensors=("stereo",), stereo_scale=0.5)
+    sc = f.scene
+    stake = min((o for o in sc.obstacles if o.cls == "stake"), key=lambda o: o.width_m)
+    f.vehicle.s = sc.route_s_of(stake.x, stake.y) - 8.0 - 1.6   # the camera ~8 m from it
+    from drivers.sim.render import render_view
+    from drivers.sim.world import MAT_OBSTACLE
+    cal = f.stereo_calibration
+    c, r, _ = f._sensor_pose(cal.mount)
+    v = render_view(f.world, f.lighting, c, r, cal.camera, t_max=80.0, rel_step=0.0057)
+    k = sc.obstacles.index(stake)
+    cols = np.flatnonzero((v.mat == MAT_OBSTACLE + k).any(axis=0))
+    rows = np.flatnonzero((v.mat == MAT_OBSTACLE + k).any(axis=1))
+    assert len(cols) and len(rows)
+    # its width in pixels at its range, and every row of it drawn over that width
+    rng_m = float(np.median(v.zdepth[v.mat == MAT_OBSTACLE + k]))
+    want = stake.width_m * cal.camera.fx / rng_m
+    assert 7.0 < rng_m < 10.0
+    assert len(cols) >= 0.7 * want
+    hit_rows = (v.mat[rows.min():rows.max() + 1] == MAT_OBSTACLE + k).any(axis=1)
+    assert hit_rows.mean() > 0.9

@@ -77,6 +77,12 @@ SCENE_KINDS: dict[str, str] = {
                            "leaves over the path) covered path by path (RGB-D), with crates, "
                            "buckets, boxes, people standing, crouching, lying and walking across, "
                            "in the path, beside it and in the end bays",
+    "stubble-thin": "the stubble-coverage field of the seed by day with only thin, short "
+                    "things in the path: stakes 8-14 cm across and 0.6-1.3 m tall, small "
+                    "children 0.95-1.25 m tall, dogs facing the vehicle (what a rule against "
+                    "stubble tufts must not drop; docs/simulator.md)",
+    "stubble-thin-night": "the stubble-thin field and obstacles of the same seed at night, lit "
+                          "only by the strobe at the cameras",
     "stubble-lookalike": "the stubble-day field and obstacle course with the obstacles that look "
                          "like the field: a person in khaki on the path, the stubble-coloured "
                          "drum and a stubble-textured crate (the learned cue's hard cases)",
@@ -384,7 +390,8 @@ def build_scene(name: str, seed: int = 0) -> Scene:
     if name not in SCENES:
         raise ValueError(f"unknown scene {name!r}; known scenes: {', '.join(sorted(SCENES))}")
     seed = int(seed)
-    if name in ("stubble-coverage", "stubble-coverage-night"):
+    if name in ("stubble-coverage", "stubble-coverage-night", "stubble-thin",
+                "stubble-thin-night"):
         return _stubble_coverage(name, seed)
     if name == "greenhouse-coverage":
         return _greenhouse_coverage(name, seed)
@@ -667,6 +674,58 @@ def _coverage_stubble_obstacles(rng, length_m: float, spacing_m: float, passes: 
     return obs
 
 
+# stubble-thin: what a rule against stubble tufts (thin, short, seen by geometry alone) must not
+# drop. (length, width, height) ranges; a stake's width is its diameter. Thinner things (a
+# 4 cm star picket) are below what the renderer draws reliably beyond a few metres (its march
+# steps ~0.6 % of the range), so they are not in the scene.
+_THIN = ("stake", "child", "dog-head-on")
+_STAKE_COLOURS = [(0.25, 0.30, 0.33), (0.36, 0.37, 0.38), (0.40, 0.58, 0.72), (0.15, 0.18, 0.20)]
+
+
+def _thin_obstacles(rng, length_m: float, passes: int, spacing_m: float,
+                    headland_m: float) -> list:
+    """2-4 thin, short things in the path of every lane (at least 30 m apart; none in the first
+    60 m of the first lane, where the novelty model learns the field), drawn from ``_THIN``:
+    a stake (a cylinder 8-14 cm across, 0.6-1.3 m tall; weathered wood, steel, straw-coloured,
+    black), a small child standing (0.95-1.25 m, 25-32 cm across the shoulders, clothes as
+    the people of stubble-coverage), a dog facing along the lane (25-35 cm across)."""
+    obs: list[Obstacle] = []
+    for p in range(passes):
+        y = p * spacing_m
+        lo = 60.0 if p == 0 else headland_m + 5.0
+        xs: list[float] = []
+        n = int(rng.integers(2, 5))
+        for _ in range(80):
+            if len(xs) == n:
+                break
+            x = float(rng.uniform(lo, length_m - headland_m - 5.0))
+            if all(abs(x - q) >= 30.0 for q in xs):
+                xs.append(x)
+        for x in sorted(xs):
+            oid = f"t{len(obs) + 1}"
+            cls = _THIN[int(rng.integers(len(_THIN)))]
+            yy = y + float(rng.uniform(-0.3, 0.3))
+            if cls == "stake":
+                d = float(rng.uniform(0.08, 0.14))
+                col = _bgr(rng, _STAKE_COLOURS[int(rng.integers(len(_STAKE_COLOURS)))], 0.04)
+                o = Obstacle(oid, "stake", "cylinder", x, yy, 0.0, d, d,
+                             float(rng.uniform(0.6, 1.3)), col, tuple(0.8 * c for c in col))
+                o.tone = "own"
+            elif cls == "child":
+                o = _person(rng, oid, x, yy, "standing")
+                o.cls = "child"
+                o.length_m = float(rng.uniform(0.15, 0.22))
+                o.width_m = float(rng.uniform(0.25, 0.32))
+                o.height_m = float(rng.uniform(0.95, 1.25))
+            else:
+                o = _animal(rng, oid, x, yy, "dog")
+                o.cls = "dog-head-on"
+                o.yaw_deg = float(rng.choice([0.0, 180.0]) + rng.uniform(-15.0, 15.0))
+            o.placement = "in-path"
+            obs.append(o)
+    return obs
+
+
 def _stubble_coverage(kind: str, seed: int) -> Scene:
     rng = np.random.default_rng([seed, 21])             # the field: day and night share it
     fp = _draw_stubble_field(rng)
@@ -677,8 +736,14 @@ def _stubble_coverage(kind: str, seed: int) -> Scene:
     route_s = np.concatenate([[0.0], np.cumsum(seg)])
     lanes = _lane_intervals(route_s, length, passes)
     cruise, headland = 2.5, 8.0
-    orng = np.random.default_rng([seed, 22])
-    obstacles = _coverage_stubble_obstacles(orng, length, spacing, passes, lanes, cruise, headland)
+    thin = kind.startswith("stubble-thin")
+    if thin:         # the same field (its own draws: [seed, 21] above), other obstacles
+        obstacles = _thin_obstacles(np.random.default_rng([seed, 24]), length, passes, spacing,
+                                    headland)
+    else:
+        orng = np.random.default_rng([seed, 22])
+        obstacles = _coverage_stubble_obstacles(orng, length, spacing, passes, lanes, cruise,
+                                                headland)
     world = World("stubble", seed, obstacles, waves, extent=_extent(path),
                   banks=np.array(fp["banks"], np.float32).reshape(-1, 5),
                   row_offset_m=float(rng.uniform(0, fp["row_spacing_m"])),
@@ -687,7 +752,7 @@ def _stubble_coverage(kind: str, seed: int) -> Scene:
                   straw_bgr=fp["straw_bgr"], soil_bgr=fp["soil_bgr"],
                   litter_bgr=fp["litter_bgr"], litter=fp["litter"])
     sky = _draw_sky(np.random.default_rng([seed, 23]))
-    night = kind == "stubble-coverage-night"
+    night = kind.endswith("-night")
     if not night:
         d = sky["dusk"]
         world.sky_bgr = tuple(float(c) for c in (1 - d) * np.array((0.95, 0.80, 0.62)) +
