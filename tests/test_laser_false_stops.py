@@ -1,0 +1,35 @@
+"""tools/laser_false_stops.py: the laser's false stops on the stubble field are real stubble
+tufts hit by the level scan plane where the ground ahead rises or the vehicle pitches
+(docs/proving-ground.md "The laser's false stops")."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+TOOL = ROOT / "tools" / "laser_false_stops.py"
+
+
+def _run(*args):
+    return subprocess.run([sys.executable, str(TOOL), *args], cwd=ROOT, capture_output=True,
+                          text=True, timeout=300)
+
+
+def test_the_first_laser_false_stop_of_training_seed_1_is_a_stubble_tuft():
+    p = _run("stubble-coverage", "1", "--minutes", "0.45")
+    assert p.returncode == 0, p.stderr[-2000:]
+    lines = [json.loads(x) for x in p.stdout.splitlines() if x.startswith("{")]
+    stops, summary = lines[:-1], lines[-1]
+    assert summary["false_stops"] == 1 and len(stops) == 1
+    zone = [h for h in stops[0]["returns"] if h["in_stop_zone"]]
+    assert zone and all(h["hit"] == "stubble" for h in zone)
+    # the beam hit the tuft below the mount's 0.7 m above the ground under the vehicle: the
+    # scan plane came down to the stubble's height there
+    for h in zone:
+        assert 0.2 < h["hit_above_ground_m"] < 0.7
+    assert summary["by_hit"]["stubble"]["returns"] == len(zone)
+
+
+def test_acceptance_seeds_are_refused():
+    p = _run("stubble-coverage", "1000")
+    assert p.returncode == 2 and "acceptance" in p.stderr and not p.stdout

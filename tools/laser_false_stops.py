@@ -1,0 +1,115 @@
+"""What did the laser hit when the box stopped for nothing? One closed-loop campaign drive with
+the laser pipeline, and per false stop the returns in and just beyond the stop zone, each with
+the simulator's truth at the hit.
+
+    python tools/laser_false_stops.py KIND SEED --minutes 2 [--config extra.toml] [--json]
+
+Runs the drive exactly as ``fieldguard campaign`` does (appliance/campaign_drive.Drive, with
+``[perception] pipelines = ["laser"]`` unless the config says otherwise). For each return at
+most 3 m beyond the stop zone and within the zone's half width, at the first cycle of each
+false STOP: where the pipeline put it (vehicle frame, scan plane level as the paper mounts
+it), how high above the real ground at that place the beam hit, what it hit (ground, stubble,
+an obstacle) and the height of what stands at that point (a tuft's stalks are ragged per 2 cm:
+the beam may have hit a taller neighbour); and the vehicle's pitch and roll. Prints one
+JSON line per false stop and a summary (returns by material, their heights above the ground).
+Training seeds only (< 1000): this is a tool for finding causes.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import numpy as np  # noqa: E402
+
+MATERIALS = {0: "ground", 1: "stubble"}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("kind")
+    ap.add_argument("seed", type=int)
+    ap.add_argument("--minutes", type=float, default=2.0)
+    ap.add_argument("--config", default=None, help="TOML merged over the drive's config")
+    a = ap.parse_args(argv)
+    if a.seed >= 1000:
+        print("laser_false_stops: seeds >= 1000 are the acceptance set; look for causes on "
+              "training seeds", file=sys.stderr)
+        return 2
+    from appliance.campaign import load_extra_config, make_spec
+    from appliance.campaign_drive import Drive
+    from drivers.sim.world import MAT_OBSTACLE
+    extra = {"perception": {"pipelines": ["laser"]}}
+    if a.config:
+        more = load_extra_config(a.config)
+        for k, v in more.items():
+            extra[k] = {**extra.get(k, {}), **v} if isinstance(v, dict) else v
+    spec = make_spec(a.kind, a.seed, a.minutes, 0.5, extra)
+    d = Drive(a.kind, a.seed, a.minutes, config_data=spec["config"], stereo_scale=0.5)
+    d.build()
+    z, f = d.zones, d.field
+    world = f.scene.world
+    n_ev = [0]
+    hits: list[dict] = []
+
+    def after(res):
+        fresh = [e for e in d.events[n_ev[0]:] if e.get("event") == "stop"]
+        n_ev[0] = len(d.events)
+        scan = res.inputs.laser
+        if scan is None or not any(e["kind"] == "false" for e in fresh):
+            return
+        g = scan.geometry
+        r = np.asarray(scan.ranges_m, float)
+        ang = g.angles_rad()
+        ok = np.isfinite(r)
+        loc = np.stack([r * np.cos(ang), r * np.sin(ang), 0 * r], 1)[ok]
+        c, _, rb = f._sensor_pose(g.mount)
+        wp = c + loc @ rb.T                               # where the beam really hit
+        vx, vy = g.mount.x_m + loc[:, 0], g.mount.y_m + loc[:, 1]
+        stop_len = res.verdict.stop_len_m if res.verdict is not None else z.min_stop_m
+        near = (vx - z.front_x_m >= 0) & (vx - z.front_x_m <= stop_len + 3.0) & (
+            np.abs(vy) <= z.half_width_m)
+        wx, wy = wp[near, 0].astype(np.float32), wp[near, 1].astype(np.float32)
+        ground = world.ground(wx, wy)
+        top, mat = world.height(wx, wy)
+        roll, pitch, _ = f.vehicle.attitude()
+        for ev in fresh:
+            if ev["kind"] != "false":
+                continue
+            rows = []
+            for x, y, hz, gz, tz, m in zip(vx[near], vy[near], wp[near, 2], ground, top, mat):
+                what = "obstacle" if m >= MAT_OBSTACLE else MATERIALS.get(int(m), str(int(m)))
+                rows.append({"x_m": round(float(x), 2), "y_m": round(float(y), 2),
+                             "in_stop_zone": bool(x - z.front_x_m <= stop_len),
+                             "hit_above_ground_m": round(float(hz - gz), 2),
+                             "hit": what, "top_above_ground_m": round(float(tz - gz), 2)})
+            rec = {"t_s": ev["t_s"], "duration_s": ev.get("duration_s"),
+                   "pitch_deg": round(float(np.degrees(pitch)), 2),
+                   "roll_deg": round(float(np.degrees(roll)), 2),
+                   "sensor_above_ground_m": round(float(
+                       c[2] - world.ground(np.float32(c[0]), np.float32(c[1]))), 3),
+                   "returns": rows}
+            hits.append(rec)
+            print(json.dumps(rec), flush=True)
+
+    d.daemon.loop.on_cycle.append(after)
+    res = d.run()["result"]
+    allr = [h for rec in hits for h in rec["returns"] if h["in_stop_zone"]]
+    by = {}
+    for h in allr:
+        by.setdefault(h["hit"], []).append(h["hit_above_ground_m"])
+    summary = {"kind": a.kind, "seed": a.seed, "false_stops": res["false_stops"],
+               "stop_zone_returns": len(allr),
+               "by_hit": {k: {"returns": len(v),
+                              "above_ground_m_p10_p50_p90": [round(float(q), 2) for q in
+                                                             np.percentile(v, [10, 50, 90])]}
+                          for k, v in sorted(by.items())}}
+    print(json.dumps(summary))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
