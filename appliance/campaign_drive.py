@@ -46,8 +46,6 @@ from appliance.zones import to_path_frame
 # default pipelines per scene kind: today's pipelines for the kind's sensors
 DEFAULT_PIPELINES = {"stubble-coverage": ("stereo-novelty",),
                      "stubble-coverage-night": ("stereo-novelty",),
-                     "stubble-thin": ("stereo-novelty",),
-                     "stubble-thin-night": ("stereo-novelty",),
                      "greenhouse-coverage": ("rgbd",)}
 ROW_FIELDS = ("t_s", "x_m", "y_m", "yaw_deg", "speed_mps", "state", "reason", "nearest_m",
               "stop_zone_m", "cells", "real_nearest_m", "real_obstacle", "place",

@@ -33,3 +33,10 @@ def test_the_first_laser_false_stop_of_training_seed_1_is_a_stubble_tuft():
 def test_acceptance_seeds_are_refused():
     p = _run("stubble-coverage", "1000")
     assert p.returncode == 2 and "acceptance" in p.stderr and not p.stdout
+
+
+def test_a_bad_config_is_one_clear_line(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[perception\n")
+    p = _run("stubble-coverage", "1", "--config", str(bad))
+    assert p.returncode == 2 and "not valid TOML" in p.stderr and "Traceback" not in p.stderr

@@ -2,7 +2,7 @@
 the laser pipeline, and per false stop the returns in and just beyond the stop zone, each with
 the simulator's truth at the hit.
 
-    python tools/laser_false_stops.py KIND SEED --minutes 2 [--config extra.toml] [--json]
+    python tools/laser_false_stops.py KIND SEED --minutes 2 [--config extra.toml]
 
 Runs the drive exactly as ``fieldguard campaign`` does (appliance/campaign_drive.Drive, with
 ``[perception] pipelines = ["laser"]`` unless the config says otherwise). For each return at
@@ -25,8 +25,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import numpy as np  # noqa: E402
 
-MATERIALS = {0: "ground", 1: "stubble"}
-
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -40,13 +38,17 @@ def main(argv=None) -> int:
               "training seeds", file=sys.stderr)
         return 2
     from appliance.campaign import load_extra_config, make_spec
-    from appliance.campaign_drive import Drive
-    from drivers.sim.world import MAT_OBSTACLE
-    extra = {"perception": {"pipelines": ["laser"]}}
-    if a.config:
-        more = load_extra_config(a.config)
-        for k, v in more.items():
-            extra[k] = {**extra.get(k, {}), **v} if isinstance(v, dict) else v
+    from hal.errors import FieldguardError
+    from appliance.campaign_drive import Drive, deep_merge
+    from drivers.sim.world import MAT_BUSH, MAT_GROUND, MAT_LEAF, MAT_OBSTACLE, MAT_STUBBLE
+    materials = {MAT_GROUND: "ground", MAT_STUBBLE: "stubble", MAT_BUSH: "bush",
+                 MAT_LEAF: "leaf"}
+    try:
+        extra = deep_merge({"perception": {"pipelines": ["laser"]}},
+                           load_extra_config(a.config) if a.config else {})
+    except FieldguardError as exc:
+        print(f"laser_false_stops: {exc}", file=sys.stderr)
+        return 2
     spec = make_spec(a.kind, a.seed, a.minutes, 0.5, extra)
     d = Drive(a.kind, a.seed, a.minutes, config_data=spec["config"], stereo_scale=0.5)
     d.build()
@@ -81,7 +83,8 @@ def main(argv=None) -> int:
                 continue
             rows = []
             for x, y, hz, gz, tz, m in zip(vx[near], vy[near], wp[near, 2], ground, top, mat):
-                what = "obstacle" if m >= MAT_OBSTACLE else MATERIALS.get(int(m), str(int(m)))
+                what = ("obstacle" if m >= MAT_OBSTACLE
+                        else materials.get(int(m), str(int(m))))
                 rows.append({"x_m": round(float(x), 2), "y_m": round(float(y), 2),
                              "in_stop_zone": bool(x - z.front_x_m <= stop_len),
                              "hit_above_ground_m": round(float(hz - gz), 2),

@@ -736,8 +736,7 @@ def _stubble_coverage(kind: str, seed: int) -> Scene:
     route_s = np.concatenate([[0.0], np.cumsum(seg)])
     lanes = _lane_intervals(route_s, length, passes)
     cruise, headland = 2.5, 8.0
-    thin = kind.startswith("stubble-thin")
-    if thin:         # the same field (its own draws: [seed, 21] above), other obstacles
+    if kind.startswith("stubble-thin"):         # the same field (its own draws: [seed, 21] above), other obstacles
         obstacles = _thin_obstacles(np.random.default_rng([seed, 24]), length, passes, spacing,
                                     headland)
     else:
