@@ -5,6 +5,9 @@ assumed parallel to the ground (as the paper mounted its SICK LMS151 at 0.7 m). 
 ground over stubble that assumption fails and stubble returns become obstacles: the paper's
 finding, and why this pipeline is a baseline. ``use_attitude`` (our addition) projects each hit
 with the mount and the vehicle's roll and pitch and drops hits lower than ``min_height_m``.
+``min_width_m`` (our addition) drops what the scan sees narrower than that: the returns are cut
+into segments of neighbouring beams at about the same range, and a segment's width is the
+distance across its ends plus one beam's footprint (docs/proving-ground.md, "Tuft tops").
 """
 from __future__ import annotations
 
@@ -25,6 +28,39 @@ class LaserPipelineConfig:
     max_range_m: float = _f(30.0, lo=0.1)
     use_attitude: bool = _f(False, doc="project hits with the vehicle's roll/pitch (not in the paper)")
     min_height_m: float = _f(-100.0, doc="with use_attitude: drop hits lower than this")
+    min_width_m: float = _f(0.0, lo=0.0, hi=2.0,
+                            doc="drop returns whose segment (neighbouring beams at about the "
+                                "same range) is narrower than this across: the tops of stubble "
+                                "tufts the plane grazes; 0 = keep every return (the paper)")
+    segment_jump_m: float = _f(0.15, lo=0.01, hi=5.0,
+                               doc="min_width_m: neighbouring beams whose ranges differ by more "
+                                   "than this (or 3 beam footprints, if larger) start a new "
+                                   "segment")
+
+
+def segment_widths(r: np.ndarray, ok: np.ndarray, step_rad: float, jump_m: float) -> np.ndarray:
+    """Per beam, the width across of the segment it belongs to (0 where ``ok`` is false).
+
+    A segment is a run of neighbouring ``ok`` beams whose ranges differ by less than
+    max(jump_m, 3 x r x step_rad) from one beam to the next; its width is the chord from its
+    first to its last beam plus one beam's footprint at the segment's mean range."""
+    n = len(r)
+    out = np.zeros(n, dtype=np.float64)
+    idx = np.flatnonzero(ok)
+    if not len(idx):
+        return out
+    ri = r[idx]
+    tol = np.maximum(jump_m, 3.0 * np.minimum(ri[1:], ri[:-1]) * step_rad)
+    brk = (np.diff(idx) != 1) | (np.abs(np.diff(ri)) >= tol)
+    starts = np.concatenate([[0], np.flatnonzero(brk) + 1])
+    ends = np.concatenate([starts[1:], [len(idx)]])          # exclusive
+    for a, b in zip(starts, ends):
+        i0, i1 = idx[a], idx[b - 1]
+        r0, r1 = r[i0], r[i1]
+        dth = (i1 - i0) * step_rad
+        chord = np.sqrt(max(r0 * r0 + r1 * r1 - 2.0 * r0 * r1 * np.cos(dth), 0.0))
+        out[idx[a:b]] = chord + float(np.mean(ri[a:b])) * step_rad
+    return out
 
 
 class LaserPipeline(Pipeline):
@@ -41,6 +77,10 @@ class LaserPipeline(Pipeline):
             raise ValueError(f"laser scan has {r.shape} ranges, geometry says {geo.beams} beams")
         ang = geo.angles_rad()
         ok = np.isfinite(r) & (r >= o.min_range_m) & (r <= min(o.max_range_m, geo.range_max_m))
+        n_in_range = int(ok.sum())
+        if o.min_width_m > 0:
+            ok &= segment_widths(r, ok, abs(np.radians(geo.angle_step_deg)),
+                                 o.segment_jump_m) >= o.min_width_m
         r, ang = r[ok], ang[ok]
         local = np.stack([r * np.cos(ang), r * np.sin(ang), np.zeros_like(r)], axis=1)
         m = geo.mount
@@ -61,5 +101,6 @@ class LaserPipeline(Pipeline):
         cands = cluster_candidates(pts[:, :2], z, None, base_sources=("laser",),
                                    pipeline=self.name, min_points=2, contact_m=np.inf)
         return Detections(points_xy=pts[:, :2].astype(np.float32), candidates=cands,
-                          debug={"returns": int(ok.sum()), "beams": geo.beams,
+                          debug={"returns": n_in_range, "kept": int(ok.sum()),
+                                 "beams": geo.beams,
                                  "candidates": len(cands)})
