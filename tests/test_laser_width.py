@@ -102,3 +102,15 @@ def test_on_the_simulated_field_tuft_tops_go_and_the_thin_obstacles_stay():
     # measured: 59 of 76 stubble returns within 6 m kept (a tuft top hit by one beam goes; a
     # tuft the plane cuts lower, or two side by side, stays a segment of 5 cm or more)
     assert stubble_paper > 20 and stubble_box <= 0.85 * stubble_paper, (stubble_paper, stubble_box)
+
+
+def test_a_bad_min_width_is_a_clear_config_error():
+    import pytest
+    from appliance.config import parse_config
+    from hal.errors import ConfigError
+    assert parse_config({"perception": {"laser": {"min_width_m": 0.05}}}, "<t>") \
+        .perception.laser.min_width_m == 0.05
+    with pytest.raises(ConfigError, match=r"perception\.laser\.min_width_m\] must be >= 0"):
+        parse_config({"perception": {"laser": {"min_width_m": -1}}}, "<t>")
+    with pytest.raises(ConfigError, match=r"segment_jump_m\] must be a number"):
+        parse_config({"perception": {"laser": {"segment_jump_m": "wide"}}}, "<t>")
