@@ -53,13 +53,12 @@ def segment_widths(r: np.ndarray, ok: np.ndarray, step_rad: float, jump_m: float
     tol = np.maximum(jump_m, 3.0 * np.minimum(ri[1:], ri[:-1]) * step_rad)
     brk = (np.diff(idx) != 1) | (np.abs(np.diff(ri)) >= tol)
     starts = np.concatenate([[0], np.flatnonzero(brk) + 1])
-    ends = np.concatenate([starts[1:], [len(idx)]])          # exclusive
-    for a, b in zip(starts, ends):
-        i0, i1 = idx[a], idx[b - 1]
-        r0, r1 = r[i0], r[i1]
-        dth = (i1 - i0) * step_rad
-        chord = np.sqrt(max(r0 * r0 + r1 * r1 - 2.0 * r0 * r1 * np.cos(dth), 0.0))
-        out[idx[a:b]] = chord + float(np.mean(ri[a:b])) * step_rad
+    last = np.concatenate([starts[1:], [len(idx)]]) - 1
+    r0, r1 = ri[starts], ri[last]
+    dth = (idx[last] - idx[starts]) * step_rad
+    chord = np.sqrt(np.maximum(r0 * r0 + r1 * r1 - 2.0 * r0 * r1 * np.cos(dth), 0.0))
+    mean_r = np.add.reduceat(ri, starts) / (last - starts + 1)
+    out[idx] = np.repeat(chord + mean_r * step_rad, last - starts + 1)
     return out
 
 
