@@ -100,10 +100,12 @@ class GridConfig:
                                "the papers' rule; docs/tracking.md 'stop_recur on the "
                                "acceptance seeds')")
     stop_recur_decay: float = _f(0.7, lo=0.0, hi=0.99)
-    stop_recur_now: tuple = _f(("laser",),
+    stop_recur_now: tuple = _f((),
                                doc="pipelines whose hits in a stop-zone cell make it a STOP at "
-                                   "once, recurrent or not (a laser's return is a range "
-                                   "measurement, not a match that flickers)")
+                                   "once, recurrent or not; [] = every pipeline waits for the "
+                                   "recurrence (the laser too: a tuft top it grazes comes and "
+                                   "goes; docs/proving-ground.md 'Tuft tops'); [\"laser\"] was "
+                                   "the default before")
 
 
 @dataclass(frozen=True)

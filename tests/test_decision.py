@@ -71,8 +71,9 @@ def test_exclusion_boxes_still_hold_for_tracks():
 
 
 def test_cells_decision_is_unchanged_when_tracking_is_off():
-    """enabled = false: the obstacle picture is the grid's occupied cells, as before."""
-    cfg = Config(grid=GridConfig(occupied_at=1.0))
+    """enabled = false: the obstacle picture is the grid's occupied cells, as before (a laser
+    cell stopping on its first occupied cycle, as it did by default before 2026-12-04)."""
+    cfg = Config(grid=GridConfig(occupied_at=1.0, stop_recur_now=("laser",)))
     core = DecisionCore(cfg)
     assert core.tracker is None
     pic = core.perceive({"laser": Detections(points_xy=np.array([[4.05, 0.05]]))},
@@ -473,8 +474,11 @@ def test_a_laser_return_cluster_confirms_on_the_grids_second_hit():
     c = Candidate(x_m=4.0, y_m=0.045, length_m=0.2, width_m=0.2, height_m=0.7, points=2,
                   confidence=0.18, sources=("laser",), pipeline="laser")
     frames = [{"laser": Detections(points_xy=pts, candidates=(c,))} for _ in range(4)]
-    assert _stop_cycles(Config(), frames) == [False, True, True, True]
+    now = Config(grid=GridConfig(stop_recur_now=("laser",)))     # a laser cell stops at once
+    assert _stop_cycles(now, frames) == [False, True, True, True]
     assert _stop_cycles(tracks_cfg(), frames) == [False, True, True, True]
+    # the default cell decision waits for the recurrence, the laser's cells too (a cycle later)
+    assert _stop_cycles(Config(), frames) == [False, False, True, True]
     # off the stop zone too (the stop-zone rule does not apply): 8 m ahead, a SLOW at once
     far = [{"laser": Detections(points_xy=pts + [4.0, 0.0], candidates=(
         dataclasses.replace(c, x_m=8.0),))} for _ in range(3)]
@@ -520,12 +524,13 @@ def test_a_track_whose_cells_reach_into_the_stop_zone_is_a_stop():
     assert "track" in out.reason and "in the stop zone" in out.reason
 
 
-def test_stop_recur_the_default_waits_one_cycle_for_a_camera_cell_but_not_for_a_laser_return():
+def test_stop_recur_the_default_waits_one_cycle_for_a_camera_cell_and_a_laser_return():
     """The default cell decision (stop_recur 1.3, decay 0.7): a stop-zone cell occupied in one
-    cycle only is a SLOW ("unconfirmed"), occupied again it is a STOP; a cell with a laser
-    return is a STOP on its first occupied cycle (``stop_recur_now``: a range measurement
-    does not flicker like a match). The papers' rule (stop_recur = 0) stops on the first
-    occupied cycle for both."""
+    cycle only is a SLOW ("unconfirmed"), occupied again it is a STOP, the laser's cells
+    included (``stop_recur_now = []`` since 2026-12-04: a tuft top the scan plane grazes comes
+    and goes; docs/proving-ground.md "Tuft tops"). ``stop_recur_now = ["laser"]`` (the default
+    before) stops on a laser cell's first occupied cycle. The papers' rule (stop_recur = 0)
+    stops on the first occupied cycle for both."""
     def first_stop(cfg, source):       # the zone verdict's (the gate holds its boot STOP)
         core = DecisionCore(cfg)
         for k in range(4):
@@ -542,15 +547,16 @@ def test_stop_recur_the_default_waits_one_cycle_for_a_camera_cell_but_not_for_a_
     assert first_stop(default, "stereo-novelty")[0] == 2
     core = DecisionCore(default)                   # the cycle between is a SLOW, and says why
     for k in range(2):
-        pic = core.perceive({"stereo-novelty": Detections(points_xy=blob(4.0, 0.0))},
+        pic = core.perceive({"laser": Detections(points_xy=np.array([[4.05, 0.05]]))},
                             VehicleState(k * DT, k), k * DT)
     assert pic.verdict.in_stop == 0 and pic.verdict.in_slow > 0
     assert "unconfirmed obstacle" in pic.verdict.slow_reason
-    # a laser return: no cycle more than the papers' rule (the grid's two hits)
-    assert first_stop(default, "laser")[0] == first_stop(papers, "laser")[0] == 1
-    # a config that lists no source waits for the laser too
-    none_now = Config(gate=GateConfig(hold_off_s=0.3), grid=GridConfig(stop_recur_now=()))
-    assert first_stop(none_now, "laser")[0] == 2
+    # a laser return: one cycle more than the papers' rule, like a camera cell
+    assert first_stop(default, "laser")[0] == 2 and first_stop(papers, "laser")[0] == 1
+    # a config that lists the laser stops for it at once
+    laser_now = Config(gate=GateConfig(hold_off_s=0.3), grid=GridConfig(stop_recur_now=("laser",)))
+    assert first_stop(laser_now, "laser")[0] == 1
+    assert first_stop(laser_now, "stereo-novelty")[0] == 2
     from appliance.config import parse_config
     from hal.errors import ConfigError
     assert parse_config({"grid": {"stop_recur_now": ["laser", "rgbd"]}}, "<t>").grid \

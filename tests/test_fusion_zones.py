@@ -94,7 +94,8 @@ def test_laser_pipeline_geometry():
     r[270 + 180] = 2.0      # +90 deg: to the left
     r[0] = 0.1              # closer than min range: dropped
     scan = LaserScan(0, 0, r, geo)
-    det = LaserPipeline(LaserPipelineConfig()).process(SensorInputs(0, laser=scan))
+    # one beam each: the paper's pipeline keeps them (the default's min_width_m drops them)
+    det = LaserPipeline(LaserPipelineConfig(min_width_m=0.0)).process(SensorInputs(0, laser=scan))
     pts = det.points_xy[np.argsort(det.points_xy[:, 0])]
     assert len(pts) == 2
     assert np.allclose(pts[1], [1.3 + 5.0, 0.0], atol=1e-4)

@@ -44,7 +44,7 @@ def test_min_width_drops_a_tuft_top_and_keeps_an_8_cm_stake():
     tuft = {ahead - 20: 3.0}                      # one beam: 2.6 cm at 3 m
     stake = {ahead + k: 3.0 for k in range(3)}    # an 8 cm stake at 3 m: 3 beams (7.9 cm)
     both = _scan({**tuft, **stake})
-    paper = LaserPipeline(LaserPipelineConfig()).process(SensorInputs(0, laser=both))
+    paper = LaserPipeline(LaserPipelineConfig(min_width_m=0.0)).process(SensorInputs(0, laser=both))
     assert len(paper.points_xy) == 4
     box = LaserPipeline(LaserPipelineConfig(min_width_m=0.07)).process(SensorInputs(0, laser=both))
     assert len(box.points_xy) == 3
@@ -53,11 +53,16 @@ def test_min_width_drops_a_tuft_top_and_keeps_an_8_cm_stake():
     assert len(box.candidates) == 1
 
 
-def test_min_width_zero_is_the_paper():
+def test_min_width_zero_is_the_paper_and_the_default_drops_lone_beams():
     s = _scan({100: 2.0, 300: 7.0, 301: 7.0})
-    a = LaserPipeline(LaserPipelineConfig()).process(SensorInputs(0, laser=s))
-    b = LaserPipeline(LaserPipelineConfig(min_width_m=0.0)).process(SensorInputs(0, laser=s))
-    assert np.array_equal(a.points_xy, b.points_xy) and len(a.points_xy) == 3
+    a = LaserPipeline(LaserPipelineConfig(min_width_m=0.0)).process(SensorInputs(0, laser=s))
+    assert len(a.points_xy) == 3 and a.debug["kept"] == 3          # every return
+    # the default (0.05 m since 2026-12-04): the lone beam at 2 m (1.7 cm across) goes, the
+    # two beams at 7 m (6.1 + 6.1 cm across) stay
+    assert LaserPipelineConfig().min_width_m == 0.05
+    b = LaserPipeline(LaserPipelineConfig()).process(SensorInputs(0, laser=s))
+    assert len(b.points_xy) == 2 and np.all(b.points_xy[:, 0] > 5.0)
+    assert b.debug["returns"] == 3 and b.debug["kept"] == 2
 
 
 def test_on_the_simulated_field_tuft_tops_go_and_the_thin_obstacles_stay():
@@ -69,7 +74,7 @@ def test_on_the_simulated_field_tuft_tops_go_and_the_thin_obstacles_stay():
     from drivers.sim.world import MAT_OBSTACLE, MAT_STUBBLE
     f = SimField("stubble-thin", 5, sensors=("laser",))
     sc, world = f.scene, f.world
-    paper = LaserPipeline(LaserPipelineConfig())
+    paper = LaserPipeline(LaserPipelineConfig(min_width_m=0.0))
     box = LaserPipeline(LaserPipelineConfig(min_width_m=0.05))
     seen = stubble_paper = stubble_box = 0
     for k, o in enumerate(sc.obstacles):

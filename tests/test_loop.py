@@ -42,6 +42,11 @@ def test_obstacle_in_stop_zone_stops():
     clock, loop, laser, link = make()
     step(clock, loop, 6)
     laser.put_obstacle(4.0, 0.0)
+    # the default stop_recur: the first cycle that sees it is a SLOW ("unconfirmed"), the
+    # next that sees it again a STOP (the laser waits for a second look like the cameras;
+    # docs/proving-ground.md "Tuft tops")
+    r = step(clock, loop)
+    assert r.output.state is GateState.SLOW and "unconfirmed" in r.output.reason
     r = step(clock, loop)
     assert r.output.state is GateState.STOP
     assert "stop zone" in r.output.reason

@@ -92,7 +92,7 @@ def evaluate(run: Path, pipeline: str, cfg: Path | None) -> tuple[dict, str]:
 from appliance.perception.stereo_novelty import PRE_ISSUE_14 as _P14  # noqa: E402
 
 ROWS = [  # (label, pipeline, options); the novelty rows pinned to the stages before issue #14
-    ("laser", "laser", {}),
+    ("laser", "laser", {"min_width_m": 0.0}),      # the paper's: every return
     ("BM", "stereo", {"matcher": "bm"}),
     ("BM + novelty", "stereo-novelty", {**_P14, "matcher": "bm", "depth_cue": "off"}),
     ("BM + novelty + depth cue", "stereo-novelty", {**_P14, "matcher": "bm", "depth_cue": "bm"}),

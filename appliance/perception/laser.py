@@ -28,7 +28,7 @@ class LaserPipelineConfig:
     max_range_m: float = _f(30.0, lo=0.1)
     use_attitude: bool = _f(False, doc="project hits with the vehicle's roll/pitch (not in the paper)")
     min_height_m: float = _f(-100.0, doc="with use_attitude: drop hits lower than this")
-    min_width_m: float = _f(0.0, lo=0.0, hi=2.0,
+    min_width_m: float = _f(0.05, lo=0.0, hi=2.0,
                             doc="drop returns whose segment (neighbouring beams at about the "
                                 "same range) is narrower than this across: the tops of stubble "
                                 "tufts the plane grazes; 0 = keep every return (the paper)")
