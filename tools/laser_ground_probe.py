@@ -1,0 +1,196 @@
+"""Would a ground estimate ahead let the planar laser tell a stubble tuft from an obstacle?
+
+    python tools/laser_ground_probe.py KIND SEEDS --minutes 2 [--config extra.toml] [--json]
+
+Drives each training seed as ``fieldguard campaign`` does (laser pipeline unless the config
+says otherwise; the defaults' ``min_width_m``) and at EVERY cycle reads the simulator's truth
+for each return the pipeline keeps in the path ahead (0-8 m beyond the vehicle's front,
+within the zone's half width + 0.5 m): what the beam hit, and how high above the real ground
+at that place it hit (the scan plane's height there: 0.7 m on the flat, less where the ground
+rises or the vehicle pitches nose-down). A rule "drop a return where the plane is lower than
+T above the ground there" needs the ground ahead, which a planar laser does not measure (the
+stereo pipeline's fitted ground, appliance/perception/ground.py, would be one source); this
+probe measures, with the TRUE ground (an upper bound on what an estimate can give), what such
+a rule would remove for each T:
+
+- stubble: the share of the stubble returns it removes (in the stop zone and in the path);
+- obstacles: per class, the share of (obstacle, cycle) sightings in the path it loses
+  entirely (every kept return of that obstacle that cycle below T), and the median distance
+  from the front at which each obstacle was first seen, with and without the rule.
+
+Training seeds only (< 1000): a tool for deciding what to build, not a score.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import numpy as np  # noqa: E402
+
+THRESHOLDS = (0.45, 0.5, 0.55, 0.6, 0.65)
+
+
+def parse_seeds(text: str) -> list[int]:
+    out: list[int] = []
+    for part in text.split(","):
+        a, _, b = part.partition("-")
+        out += list(range(int(a), int(b or a) + 1))
+    return out
+
+
+def probe_drive(kind: str, seed: int, minutes: float, extra: dict) -> dict:
+    from appliance.campaign import make_spec
+    from appliance.campaign_drive import Drive
+    from appliance.perception.laser import segment_widths
+    from drivers.sim.world import MAT_OBSTACLE, MAT_STUBBLE
+    spec = make_spec(kind, seed, minutes, 0.5, extra)
+    d = Drive(kind, seed, minutes, config_data=spec["config"], stereo_scale=0.5)
+    d.build()
+    z, f = d.zones, d.field
+    world = f.scene.world
+    lcfg = d.cfg.perception.laser
+    stubble: list[tuple[float, bool]] = []          # (height above ground, in the stop zone)
+    sightings: list[tuple[str, int, float, float]] = []   # (class, obstacle, ahead, max h)
+
+    def after(res):
+        scan = res.inputs.laser
+        if scan is None:
+            return
+        g = scan.geometry
+        r = np.asarray(scan.ranges_m, float)
+        ang = g.angles_rad()
+        ok = np.isfinite(r) & (r >= lcfg.min_range_m) & (r <= min(lcfg.max_range_m,
+                                                                 g.range_max_m))
+        if lcfg.min_width_m > 0:
+            ok &= segment_widths(r, ok, abs(np.radians(g.angle_step_deg)),
+                                 lcfg.segment_jump_m) >= lcfg.min_width_m
+        if not ok.any():
+            return
+        loc = np.stack([r * np.cos(ang), r * np.sin(ang), 0 * r], 1)[ok]
+        c, _, rb = f._sensor_pose(g.mount)
+        wp = c + loc @ rb.T                               # where the beam really hit
+        ahead = g.mount.x_m + loc[:, 0] - z.front_x_m
+        vy = g.mount.y_m + loc[:, 1]
+        stop_len = res.verdict.stop_len_m if res.verdict is not None else z.min_stop_m
+        near = (ahead >= 0) & (ahead <= 8.0) & (np.abs(vy) <= z.half_width_m + 0.5)
+        if not near.any():
+            return
+        wx, wy = wp[near, 0].astype(np.float32), wp[near, 1].astype(np.float32)
+        h = wp[near, 2] - world.ground(wx, wy)
+        _, mat = world.height(wx, wy)
+        a = ahead[near]
+        st = mat == MAT_STUBBLE
+        stubble.extend(zip(h[st].tolist(), (a[st] <= stop_len).tolist()))
+        for k in np.unique(mat[mat >= MAT_OBSTACLE]):
+            m = mat == k
+            o = world.obstacles[int(k) - MAT_OBSTACLE]
+            sightings.append((o.cls, int(k) - MAT_OBSTACLE, float(a[m].min()),
+                              float(h[m].max())))
+
+    d.daemon.loop.on_cycle.append(after)
+    res = d.run()["result"]
+    return {"seed": seed, "stubble": stubble, "sightings": sightings,
+            "false_stops": res["false_stops"], "collisions": res["collisions"]}
+
+
+def summarise(drives: list[dict]) -> dict:
+    st = np.array([h for dr in drives for h, _ in dr["stubble"]], float)
+    st_zone = np.array([h for dr in drives for h, z in dr["stubble"] if z], float)
+    rows = []
+    for t in (-np.inf,) + THRESHOLDS:               # -inf: no rule (a hit may read a cm below
+        #                                             the sampled ground: -inf keeps those too)
+        row = {"T_m": None if t == -np.inf else t,
+               "stubble_removed": round(float(np.mean(st < t)), 3) if len(st) else None,
+               "stubble_stop_zone_removed": (round(float(np.mean(st_zone < t)), 3)
+                                             if len(st_zone) else None),
+               "classes": {}}
+        by: dict[str, dict] = {}
+        for dr in drives:
+            first: dict = {}
+            for cls, k, ahead, hmax in dr["sightings"]:
+                b = by.setdefault(cls, {"sightings": 0, "lost": 0, "first": []})
+                b["sightings"] += 1
+                if hmax < t:
+                    b["lost"] += 1
+                else:
+                    first[(cls, k)] = max(first.get((cls, k), 0.0), ahead)
+            seen = {(cls, k) for cls, k, _, _ in dr["sightings"]}
+            for key in seen:
+                by[key[0]]["first"].append(first.get(key))
+        for cls, b in sorted(by.items()):
+            held = [x for x in b["first"] if x is not None]
+            row["classes"][cls] = {
+                "sightings": b["sightings"],
+                "lost": round(b["lost"] / b["sightings"], 3),
+                "objects": len(b["first"]), "never_seen": len(b["first"]) - len(held),
+                "first_seen_median_m": round(float(np.median(held)), 2) if held else None}
+        rows.append(row)
+    return {"drives": len(drives), "stubble_returns": int(len(st)),
+            "stubble_stop_zone_returns": int(len(st_zone)),
+            "stubble_h_p10_p50_p90": ([round(float(q), 2) for q in np.percentile(st, [10, 50, 90])]
+                                      if len(st) else None),
+            "rows": rows}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("kind")
+    ap.add_argument("seeds", help="training seeds, e.g. 1-10")
+    ap.add_argument("--minutes", type=float, default=2.0)
+    ap.add_argument("--config", default=None, help="TOML merged over the drive's config")
+    ap.add_argument("--json", action="store_true", help="print the summary as JSON")
+    a = ap.parse_args(argv)
+    try:
+        seeds = parse_seeds(a.seeds)
+    except ValueError:
+        print(f"laser_ground_probe: seeds must look like 1-10 or 1,3,5 (got {a.seeds!r})",
+              file=sys.stderr)
+        return 2
+    if any(s >= 1000 for s in seeds):
+        print("laser_ground_probe: seeds >= 1000 are the acceptance set; decide on training "
+              "seeds", file=sys.stderr)
+        return 2
+    from appliance.campaign import load_extra_config
+    from appliance.campaign_drive import deep_merge
+    from hal.errors import FieldguardError
+    try:
+        extra = deep_merge({"perception": {"pipelines": ["laser"]}},
+                           load_extra_config(a.config) if a.config else {})
+    except FieldguardError as exc:
+        print(f"laser_ground_probe: {exc}", file=sys.stderr)
+        return 2
+    drives = []
+    for i, s in enumerate(seeds):
+        drives.append(probe_drive(a.kind, s, a.minutes, extra))
+        print(f"laser_ground_probe: {i + 1}/{len(seeds)} drives", file=sys.stderr, flush=True)
+    summary = summarise(drives)
+    if a.json:
+        print(json.dumps(summary))
+        return 0
+    print(f"{summary['drives']} drives, {summary['stubble_returns']} stubble returns kept in "
+          f"the path ({summary['stubble_stop_zone_returns']} in the stop zone), plane above "
+          f"the ground at them p10/p50/p90 {summary['stubble_h_p10_p50_p90']} m")
+    classes = sorted({c for r in summary["rows"] for c in r["classes"]})
+    print("| T (m) | stubble removed | in stop zone | " + " | ".join(
+        f"{c}: lost, never, first seen" for c in classes) + " |")
+    print("|---" * (3 + len(classes)) + "|")
+    for r in summary["rows"]:
+        cells = []
+        for c in classes:
+            v = r["classes"].get(c)
+            cells.append("-" if v is None else
+                         f"{100 * v['lost']:.0f} %, {v['never_seen']}/{v['objects']}, "
+                         f"{v['first_seen_median_m']} m")
+        pc = ["-" if v is None else f"{100 * v:.0f} %"
+              for v in (r["stubble_removed"], r["stubble_stop_zone_removed"])]
+        tm = "none" if r["T_m"] is None else f"{r['T_m']:.2f}"
+        print(f"| {tm} | {pc[0]} | {pc[1]} | " + " | ".join(cells) + " |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
