@@ -168,9 +168,39 @@ class DecisionCore:
                 self.curvature_1pm = 0.0
         return self.curvature_1pm
 
+    def laser_on_ground(self, detections: dict[str, Detections]) -> dict[str, Detections]:
+        """``[perception.laser] ground_min_m``: the laser's returns where its scan plane runs
+        lower than that above the ground a camera pipeline measured this cycle are dropped
+        (the top of a stubble tuft on a rise, or ahead of a vehicle pitching nose-down: a
+        planar laser cannot tell it from an obstacle, a ground ahead can). Without such a
+        ground this cycle (no camera pipeline fitting one, its fit refused, the camera
+        faulted) every return stays, as without the rule."""
+        t = self.cfg.perception.laser.ground_min_m
+        d = detections.get("laser")
+        if t <= 0 or d is None or d.points_z is None or not len(d.points_xy):
+            return detections
+        g = next((o.ground for n, o in detections.items()
+                  if n != "laser" and o is not None and o.ground is not None), None)
+        if g is None:
+            return detections
+        xy = np.asarray(d.points_xy, np.float64)
+        z = np.asarray(d.points_z, np.float64)
+        keep = (z - g.z(xy[:, 0], xy[:, 1])) >= t
+        if keep.all():
+            return detections
+        cands = tuple(c for c in d.candidates
+                      if np.any(keep & (np.abs(xy[:, 0] - c.x_m) <= c.length_m / 2 + 0.05)
+                                & (np.abs(xy[:, 1] - c.y_m) <= c.width_m / 2 + 0.05)))
+        out = dict(detections)
+        out["laser"] = Detections(points_xy=d.points_xy[keep], candidates=cands,
+                                  points_z=d.points_z[keep], ground=d.ground,
+                                  debug={**d.debug, "below_ground_min": int((~keep).sum())})
+        return out
+
     def perceive(self, detections: dict[str, Detections], vehicle: VehicleState | None,
                  now_ns: int) -> Picture:
         """Fuse this cycle's detections (the loop's "fusion" stage)."""
+        detections = self.laser_on_ground(detections)
         pts = [d.points_xy for d in detections.values() if d is not None and len(d.points_xy)]
         pts_xy = np.concatenate(pts) if pts else np.zeros((0, 2), np.float32)
         grid_cells = self.grid.update(pts_xy, vehicle, now_ns)

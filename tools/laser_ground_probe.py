@@ -53,8 +53,10 @@ def probe_drive(kind: str, seed: int, minutes: float, extra: dict) -> dict:
     z, f = d.zones, d.field
     world = f.scene.world
     lcfg = d.cfg.perception.laser
-    stubble: list[tuple[float, bool]] = []          # (height above ground, in the stop zone)
-    sightings: list[tuple[str, int, float, float]] = []   # (class, obstacle, ahead, max h)
+    # (height above the ground, in the stop zone, the same above the camera's ground or nan)
+    stubble: list[tuple[float, bool, float]] = []
+    # (class, obstacle, ahead, max h, max h above the camera's ground or nan)
+    sightings: list[tuple[str, int, float, float, float]] = []
 
     def after(res):
         scan = res.inputs.laser
@@ -83,13 +85,22 @@ def probe_drive(kind: str, seed: int, minutes: float, extra: dict) -> dict:
         h = wp[near, 2] - world.ground(wx, wy)
         _, mat = world.height(wx, wy)
         a = ahead[near]
+        # the ground a camera pipeline measured this cycle (stereo-novelty ground_for_laser),
+        # against the scan plane where the pipeline puts it (vehicle frame)
+        cam = next((o.ground for n, o in res.detections.items()
+                    if n != "laser" and o is not None and o.ground is not None), None)
+        if cam is not None:
+            plane_z = (loc @ g.mount.rotation().T)[:, 2] + g.mount.z_m
+            he = plane_z[near] - cam.z(g.mount.x_m + loc[near, 0], vy[near])
+        else:
+            he = np.full(len(h), np.nan)
         st = mat == MAT_STUBBLE
-        stubble.extend(zip(h[st].tolist(), (a[st] <= stop_len).tolist()))
+        stubble.extend(zip(h[st].tolist(), (a[st] <= stop_len).tolist(), he[st].tolist()))
         for k in np.unique(mat[mat >= MAT_OBSTACLE]):
             m = mat == k
             o = world.obstacles[int(k) - MAT_OBSTACLE]
             sightings.append((o.cls, int(k) - MAT_OBSTACLE, float(a[m].min()),
-                              float(h[m].max())))
+                              float(h[m].max()), float(np.max(he[m]))))
 
     d.daemon.loop.on_cycle.append(after)
     res = d.run()["result"]
@@ -97,9 +108,14 @@ def probe_drive(kind: str, seed: int, minutes: float, extra: dict) -> dict:
             "false_stops": res["false_stops"], "collisions": res["collisions"]}
 
 
-def summarise(drives: list[dict]) -> dict:
-    st = np.array([h for dr in drives for h, _ in dr["stubble"]], float)
-    st_zone = np.array([h for dr in drives for h, z in dr["stubble"] if z], float)
+def summarise(drives: list[dict], estimate: bool = False) -> dict:
+    """The removal table with the true ground, or (``estimate``) with the camera's ground
+    where it gave one (returns without one count as kept)."""
+    col = 2 if estimate else 0
+    st = np.array([r[col] for dr in drives for r in dr["stubble"]], float)
+    st_zone = np.array([r[col] for dr in drives for r in dr["stubble"] if r[1]], float)
+    err = np.array([r[2] - r[0] for dr in drives for r in dr["stubble"]], float)
+    err = err[np.isfinite(err)]
     rows = []
     for t in (-np.inf,) + THRESHOLDS:               # -inf: no rule (a hit may read a cm below
         #                                             the sampled ground: -inf keeps those too)
@@ -111,14 +127,15 @@ def summarise(drives: list[dict]) -> dict:
         by: dict[str, dict] = {}
         for dr in drives:
             first: dict = {}
-            for cls, k, ahead, hmax in dr["sightings"]:
+            for cls, k, ahead, *hs in dr["sightings"]:
+                hmax = hs[1] if estimate else hs[0]
                 b = by.setdefault(cls, {"sightings": 0, "lost": 0, "first": []})
                 b["sightings"] += 1
-                if hmax < t:
+                if hmax < t:                              # nan (no estimate): kept
                     b["lost"] += 1
                 else:
                     first[(cls, k)] = max(first.get((cls, k), 0.0), ahead)
-            seen = {(cls, k) for cls, k, _, _ in dr["sightings"]}
+            seen = {(cls, k) for cls, k, *_ in dr["sightings"]}
             for key in seen:
                 by[key[0]]["first"].append(first.get(key))
         for cls, b in sorted(by.items()):
@@ -129,10 +146,19 @@ def summarise(drives: list[dict]) -> dict:
                 "objects": len(b["first"]), "never_seen": len(b["first"]) - len(held),
                 "first_seen_median_m": round(float(np.median(held)), 2) if held else None}
         rows.append(row)
-    return {"drives": len(drives), "stubble_returns": int(len(st)),
+    oe = np.array([x[4] - x[3] for dr in drives for x in dr["sightings"]], float)
+    oe = oe[np.isfinite(oe)]
+    return {"drives": len(drives), "ground": "camera" if estimate else "true",
+            "stubble_returns": int(len(st)),
+            "estimated_share": round(float(len(err) / max(1, len(st))), 3),
+            "stubble_error_p10_p50_p90": ([round(float(q), 3) for q in
+                                           np.percentile(err, [10, 50, 90])] if len(err) else None),
+            "obstacle_error_p10_p50_p90": ([round(float(q), 3) for q in
+                                             np.percentile(oe, [10, 50, 90])] if len(oe) else None),
             "stubble_stop_zone_returns": int(len(st_zone)),
-            "stubble_h_p10_p50_p90": ([round(float(q), 2) for q in np.percentile(st, [10, 50, 90])]
-                                      if len(st) else None),
+            "stubble_h_p10_p50_p90": ([round(float(q), 2) for q in
+                                       np.nanpercentile(st, [10, 50, 90])]
+                                      if np.isfinite(st).any() else None),
             "rows": rows}
 
 
@@ -143,6 +169,9 @@ def main(argv=None) -> int:
     ap.add_argument("--minutes", type=float, default=2.0)
     ap.add_argument("--config", default=None, help="TOML merged over the drive's config")
     ap.add_argument("--json", action="store_true", help="print the summary as JSON")
+    ap.add_argument("--estimate", action="store_true",
+                    help="the table with the camera's ground (the config must run "
+                         "stereo-novelty with ground_for_laser) instead of the true one")
     a = ap.parse_args(argv)
     try:
         seeds = parse_seeds(a.seeds)
@@ -167,13 +196,19 @@ def main(argv=None) -> int:
     for i, s in enumerate(seeds):
         drives.append(probe_drive(a.kind, s, a.minutes, extra))
         print(f"laser_ground_probe: {i + 1}/{len(seeds)} drives", file=sys.stderr, flush=True)
-    summary = summarise(drives)
+    summary = summarise(drives, a.estimate)
     if a.json:
         print(json.dumps(summary))
         return 0
     print(f"{summary['drives']} drives, {summary['stubble_returns']} stubble returns kept in "
           f"the path ({summary['stubble_stop_zone_returns']} in the stop zone), plane above "
-          f"the ground at them p10/p50/p90 {summary['stubble_h_p10_p50_p90']} m")
+          f"the {summary['ground']} ground at them p10/p50/p90 "
+          f"{summary['stubble_h_p10_p50_p90']} m")
+    if summary["stubble_error_p10_p50_p90"] is not None:
+        print(f"the camera's ground gave a height for {100 * summary['estimated_share']:.0f} % "
+              f"of them; camera minus true, p10/p50/p90: stubble "
+              f"{summary['stubble_error_p10_p50_p90']} m, obstacles "
+              f"{summary['obstacle_error_p10_p50_p90']} m")
     classes = sorted({c for r in summary["rows"] for c in r["classes"]})
     print("| T (m) | stubble removed | in stop zone | " + " | ".join(
         f"{c}: lost, never, first seen" for c in classes) + " |")

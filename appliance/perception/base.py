@@ -54,6 +54,13 @@ class Detections:
     points_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.float32))
     debug: dict = field(default_factory=dict)     # pictures and figures for snapshot/status
     candidates: tuple[Candidate, ...] = ()
+    # the points' heights in the vehicle frame, where the pipeline knows them (the laser: its
+    # scan plane's height at each return) ...
+    points_z: np.ndarray | None = None
+    # ... and the ground this pipeline measured this frame (vehicle frame; an object with
+    # ``z(x, y)`` and ``source``, perception/ground.py), for the other pipelines' points
+    # (the laser's ``ground_min_m``, appliance/decision.py)
+    ground: object = None
 
     @staticmethod
     def empty() -> "Detections":

@@ -32,6 +32,12 @@ class LaserPipelineConfig:
                             doc="drop returns whose segment (neighbouring beams at about the "
                                 "same range) is narrower than this across: the tops of stubble "
                                 "tufts the plane grazes; 0 = keep every return (the paper)")
+    ground_min_m: float = _f(0.0, lo=0.0, hi=2.0,
+                             doc="with a camera pipeline's ground this cycle (stereo-novelty's "
+                                 "ground_for_laser): drop returns where the scan plane runs "
+                                 "lower than this above that ground (a tuft's top where the "
+                                 "ground ahead rises or the vehicle pitches); 0 = off. Applied "
+                                 "where the pipelines meet (appliance/decision.py)")
     segment_jump_m: float = _f(0.15, lo=0.01, hi=5.0,
                                doc="min_width_m: neighbouring beams whose ranges differ by more "
                                    "than this (or 3 beam footprints, if larger) start a new "
@@ -90,16 +96,21 @@ class LaserPipeline(Pipeline):
             keep = pts[:, 2] >= o.min_height_m
             pts = pts[keep]
             z = pts[:, 2]
+            plane_z = None                  # a gravity frame, not the vehicle's
         else:
             # the paper's assumption: the scan plane is parallel to the ground (mount yaw only)
             c, s = np.cos(np.radians(m.yaw_deg)), np.sin(np.radians(m.yaw_deg))
             pts = np.stack([m.x_m + c * local[:, 0] - s * local[:, 1],
                             m.y_m + s * local[:, 0] + c * local[:, 1]], axis=1)
             z = np.full(len(pts), m.z_m)
+            # where the plane is in the vehicle frame (a mount tilted in pitch or roll: not
+            # at the mount's height everywhere), for a camera's ground to be measured against
+            plane_z = (local @ m.rotation().T)[:, 2] + m.z_m
         # a planar scan sees one height (the hit's, or the mount's): no contact claim beyond it
         cands = cluster_candidates(pts[:, :2], z, None, base_sources=("laser",),
                                    pipeline=self.name, min_points=2, contact_m=np.inf)
         return Detections(points_xy=pts[:, :2].astype(np.float32), candidates=cands,
+                          points_z=None if plane_z is None else plane_z.astype(np.float32),
                           debug={"returns": n_in_range, "kept": int(ok.sum()),
                                  "beams": geo.beams,
                                  "candidates": len(cands)})

@@ -122,6 +122,10 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
     ground_local_dense: bool = _f(True, doc="ground_local: the frame's dense points carry the "
                                              "local ground too (with the depth cue's coarse "
                                              "points); false: the coarse points alone")
+    ground_for_laser: bool = _f(False, doc="fit the frame's ground to the coarse pass's "
+                                           "points (as ground_fit does) and hand it to the "
+                                           "laser's returns ([perception.laser] ground_min_m); "
+                                           "this pipeline's own heights are unchanged")
     boot_guard: bool = _f(True, doc="beyond the paper (issue #14): until the novelty model's "
                                      "first update, every frame also gets full-frame dense "
                                      "stereo; what stands above the ground there (candidates of "
@@ -273,6 +277,7 @@ class StereoNoveltyPipeline(Pipeline):
         self._pyramid: dict = {}
         self._coarse = None                    # (disparity, factor) of this frame's depth cue
         self._ground = GroundModel.level()     # this frame's ground (ground_fit)
+        self._laser_ground = None              # this frame's fit for the laser (ground_for_laser)
         self._source_masks: dict = {}          # cue name -> camera mask (1/kd) of this frame
 
     # ---- the regions that get dense stereo -------------------------------------------------
@@ -366,6 +371,10 @@ class StereoNoveltyPipeline(Pipeline):
         fitted to them here (every other height of the frame is taken above it)."""
         o: StereoNoveltyConfig = self.options
         h, self._ground = local_heights(pts, o, calib.mount.z_m)
+        if o.ground_for_laser and not o.ground_fit:
+            from .ground import fit_ground
+            self._laser_ground = fit_ground(pts, x_max_m=min(o.ground_max_range_m,
+                                                             o.max_range_m))
         if o.ground_local:
             self._coarse_pts = pts
         if o.ground_local and not o.ground_local_cue:
@@ -494,8 +503,9 @@ class StereoNoveltyPipeline(Pipeline):
             res = self.novelty.detect(fr.left, K, M, inputs.vehicle)
         t1, c1 = time.perf_counter(), time.thread_time()
         self._ground = GroundModel.level()
+        self._laser_ground = None
         self._coarse_pts = None
-        if (o.ground_fit or o.ground_local) and o.depth_cue == "off":
+        if (o.ground_fit or o.ground_local or o.ground_for_laser) and o.depth_cue == "off":
             self._ground_only(fr, inputs.vehicle)
         extra = self._extra_cues(fr, inputs.vehicle, res, kd)
         t1c, c1c = time.perf_counter(), time.thread_time()
@@ -568,7 +578,12 @@ class StereoNoveltyPipeline(Pipeline):
         self._coarse = None
         rows, cols = res.mask.shape
         h, w = left.shape[:2]
-        return Detections(points_xy=xy, candidates=cands, debug={
+        for_laser = None
+        if o.ground_for_laser and not o.use_attitude:   # the vehicle frame, as the laser's
+            for_laser = self._laser_ground if self._laser_ground is not None else ground
+            if getattr(for_laser, "source", "level") == "level":
+                for_laser = None                         # no fit this frame: nothing to say
+        return Detections(points_xy=xy, candidates=cands, ground=for_laser, debug={
             "ground": ground.to_dict(), "candidates": len(cands),
             "boot": None if boot is None else {"candidates": len(boot["candidates"]),
                                                "excluded_cells": int(boot["exclude"].sum())},
