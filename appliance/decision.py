@@ -185,7 +185,12 @@ class DecisionCore:
             return detections
         xy = np.asarray(d.points_xy, np.float64)
         z = np.asarray(d.points_z, np.float64)
-        keep = (z - g.z(xy[:, 0], xy[:, 1])) >= t
+        gz = np.asarray(g.z(xy[:, 0], xy[:, 1]), np.float64)
+        # a ground that says nothing here (not finite) drops nothing: only a measured ground
+        # less than t below the plane takes a return away
+        ok = np.isfinite(gz)
+        keep = np.ones(len(z), bool)
+        keep[ok] = (z[ok] - gz[ok]) >= t
         if keep.all():
             return detections
         cands = tuple(c for c in d.candidates

@@ -118,3 +118,18 @@ def test_stereo_novelty_hands_its_fitted_ground_to_the_laser_only_when_asked():
     assert zb.max() - zb.min() > 0.2                        # the ground does rise there
     assert np.median(np.abs(err)) < 0.1 and np.median(np.abs(err)) < np.median(np.abs(zb)), (
         np.percentile(err, [10, 50, 90]), np.percentile(zb, [10, 50, 90]))
+
+
+def test_a_ground_that_is_not_finite_drops_no_return():
+    """A camera ground that breaks (NaN or inf heights) must never blind the laser: the
+    returns it cannot judge stay obstacles."""
+    class Broken:
+        source = "fit"
+
+        def z(self, x, y):
+            out = np.full(np.shape(x), np.nan)
+            out[1::2] = np.inf
+            return out
+    dets = {"laser": _laser(4.0, 8.0), "stereo-novelty": Detections(ground=Broken())}
+    out = DecisionCore(_cfg(0.45)).laser_on_ground(dets)["laser"]
+    assert len(out.points_xy) == 2
