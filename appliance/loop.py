@@ -50,6 +50,21 @@ class CycleResult:
     tracks: list = field(default_factory=list)    # appliance.tracking.TrackView, every track
 
 
+def malformed(d) -> str | None:
+    """Why a pipeline's answer cannot be fused (None when it can): obstacle points must be
+    finite (N, 2) numbers. A NaN would fall out of the grid, i.e. be an obstacle not seen."""
+    if not isinstance(d, Detections):
+        return f"{type(d).__name__}, not Detections"
+    p = d.points_xy
+    if not isinstance(p, np.ndarray) or p.ndim != 2 or p.shape[1] != 2:
+        return f"points_xy of shape {getattr(p, 'shape', None)}, expected (N, 2)"
+    if p.dtype.kind not in "fiu":
+        return f"points_xy of dtype {p.dtype}"
+    if len(p) and not np.isfinite(p).all():
+        return f"{int((~np.isfinite(p).all(axis=1)).sum())} of {len(p)} points not finite"
+    return None
+
+
 class _Timing:
     def __init__(self, n: int = 600):
         self.samples: deque[float] = deque(maxlen=n)
@@ -169,7 +184,11 @@ class ApplianceLoop:
                 continue
             ps = self.clock.now_ns()
             try:
-                detections[p.name] = p.process(inputs)
+                d = p.process(inputs)
+                bad = malformed(d)
+                if bad:
+                    raise ValueError(f"malformed detections: {bad}")
+                detections[p.name] = d
             except Exception as exc:
                 log.exception("pipeline %s failed", p.name)
                 msg = f"pipeline {p.name} failed: {type(exc).__name__}: {exc}"
@@ -181,8 +200,16 @@ class ApplianceLoop:
 
         # ---- fusion ----
         t0, w0 = self.clock.now_ns(), time.perf_counter()
-        picture = self.core.perceive(detections, vehicle, now)
-        cells, verdict = picture.cells_xy, picture.verdict
+        try:
+            picture = self.core.perceive(detections, vehicle, now)
+        except Exception as exc:     # a bug or malformed detections: STOP, never a dead loop
+            log.exception("fusion failed")
+            faults.append(f"fusion failed: {type(exc).__name__}: {exc}")
+            picture = None
+        if picture is None:
+            cells, verdict, tracks = np.zeros((0, 2), np.float32), None, []
+        else:
+            cells, verdict, tracks = picture.cells_xy, picture.verdict, picture.tracks
         mark("fusion", t0, w0)
 
         # ---- gate ----
@@ -228,7 +255,7 @@ class ApplianceLoop:
             self.overruns += 1
         self.cycles += 1
         res = CycleResult(self.cycles, now, out, faults, verdict, cells, detections, stage_ms,
-                          wall_ms, skipped, sent_all, on_time, inputs, picture.tracks)
+                          wall_ms, skipped, sent_all, on_time, inputs, tracks)
         with self._lock:
             self.last = res
         for cb in self.on_cycle:

@@ -182,6 +182,69 @@ def test_pipeline_exception_is_stop_not_crash():
     assert r.output.state is GateState.STOP and "NaN in disparity" in r.output.reason
 
 
+class Malformed(Pipeline):
+    """A pipeline whose detections are malformed while ``broken`` is set."""
+    name = "malformed"
+    requires = ("laser",)
+    broken = None
+
+    def process(self, inputs):
+        pts = np.zeros((4, 2), np.float32) + 30.0            # far outside the zones
+        if self.broken == "xyz":
+            pts = np.zeros((4, 3), np.float32) + 30.0
+        elif self.broken == "nan":
+            pts[1, 0] = np.nan
+        return Detections(pts)
+
+
+def two_pipelines(bad):
+    clock = ManualClock(0)
+    cfg = Config(gate=GateConfig(hold_off_s=0.0), grid=GridConfig(occupied_at=1.0))
+    laser, link = HandLaser("laser", clock), HandLink("link", clock)
+    return clock, ApplianceLoop(cfg, clock, {"laser": laser, "link": link},
+                                [make_pipeline("laser", cfg), bad]), link
+
+
+@pytest.mark.parametrize("broken,says", [("xyz", "points_xy of shape (4, 3), expected (N, 2)"),
+                                         ("nan", "1 of 4 points not finite")])
+def test_malformed_detections_are_a_pipeline_fault_then_clear(broken, says):
+    bad = Malformed()
+    bad.broken = broken
+    clock, loop, link = two_pipelines(bad)
+    outs = [step(clock, loop) for _ in range(3)]
+    assert all(r.output.state is GateState.STOP for r in outs)
+    assert outs[-1].output.reason.startswith("pipeline malformed failed: ValueError: "
+                                             "malformed detections: " + says)
+    assert "malformed" not in outs[-1].detections          # never fused
+    bad.broken = None
+    outs = [step(clock, loop) for _ in range(2)]
+    assert outs[-1].output.state is GateState.CLEAR, outs[-1].output.reason
+
+
+def test_fusion_failure_is_stop_not_crash_and_recovers():
+    """A bug inside fusion (injected: the grid update raises) is a fault for that cycle, the
+    vehicle is told STOP, and the loop goes on."""
+    bad = Malformed()
+    clock, loop, link = two_pipelines(bad)
+    real, calls = loop.core.grid.update, []
+
+    def broken_update(*a, **k):
+        calls.append(1)
+        if len(calls) <= 3:
+            raise IndexError("index 4096 is out of bounds")
+        return real(*a, **k)
+
+    loop.core.grid.update = broken_update
+    outs = [step(clock, loop) for _ in range(3)]
+    assert all(r.output.state is GateState.STOP for r in outs)
+    assert outs[-1].output.reason.startswith("fusion failed: IndexError: index 4096")
+    assert outs[-1].verdict is None and len(outs[-1].cells_xy) == 0
+    assert len(link.sent) == 3 and link.sent[-1].state is GateState.STOP   # told, every cycle
+    assert loop.status()["obstacles"]["in_stop_zone"] is None
+    outs = [step(clock, loop) for _ in range(2)]      # fusion works again: the loop is alive
+    assert outs[-1].output.state is GateState.CLEAR, outs[-1].output.reason
+
+
 def test_no_link_is_stop():
     clock = ManualClock(0)
     laser = HandLaser("laser", clock)
