@@ -416,7 +416,7 @@ def cmd_config_check(a) -> int:
 # its sub-parser(s) with ``set_defaults(func=...)``. Add a line here to plug a command in.
 COMMAND_MODULES: list[str] = ["appliance.cli_ops", "appliance.cli_rgbd", "appliance.cli_novelty",
                               "appliance.cli_cue", "appliance.campaign",
-                              "appliance.mcap_export"]
+                              "appliance.campaign_compare", "appliance.mcap_export"]
 
 
 def build_parser() -> argparse.ArgumentParser:
