@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import collections
 import ipaddress
+import queue
 import threading
 import time
 
@@ -124,6 +125,52 @@ class FramePairer:
                 R.popleft()
                 self.unmatched += 1
         return out
+
+
+class _Reaper:
+    """One thread that drops the last reference to closed cameras, so that their finalisation
+    (which joins Aravis's own threads and can take seconds) runs neither in the acquisition
+    thread (it would starve the live cameras) nor in an Aravis thread (GLib would join a
+    thread from itself and abort). Started on first use."""
+
+    def __init__(self):
+        self._q: queue.Queue = queue.Queue()
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()
+
+    def put(self, box: list) -> None:
+        """Hand over ``box`` (a one-item list: the reaper pops the object out of it, so the
+        caller's last reference cannot outlive the reaper's)."""
+        with self._lock:
+            if self._thread is None or not self._thread.is_alive():
+                self._thread = threading.Thread(target=self._run, name="aravis-reaper",
+                                                daemon=True)
+                self._thread.start()
+        self._q.put(box)
+
+    def _run(self) -> None:
+        while True:
+            box = self._q.get()
+            try:
+                obj = box.pop() if box else None
+                del box
+                del obj                  # the last reference: finalised here
+            except Exception:            # a finaliser's error must not end the reaper
+                pass
+            finally:
+                self._q.task_done()
+
+    def wait_idle(self, timeout_s: float) -> bool:
+        """True once everything handed over has been let go (within ``timeout_s``)."""
+        end = time.monotonic() + timeout_s
+        while self._q.unfinished_tasks:
+            if time.monotonic() >= end:
+                return False
+            time.sleep(0.01)
+        return True
+
+
+REAPER = _Reaper()
 
 
 class _Cam:
@@ -249,14 +296,24 @@ class _Cam:
 
     def reap(self, force: bool = False, now: float | None = None) -> int:
         """Let go of closed cameras whose handler has been off for RELEASE_AFTER_S (all with
-        ``force``, once Aravis's callbacks cannot run any more). Call from the acquisition
-        thread or after it ended. ``now``: the monotonic time (default: the clock's). Returns
+        ``force``, once Aravis's callbacks cannot run any more): handed to the reaper thread,
+        which drops the last reference. Never blocks: finalising a closed ArvCamera joins
+        Aravis's threads and took 5 s a camera here; done in the acquisition thread it starved
+        a freshly reconnected pair for 10 s (the flaky replug check of
+        tests/test_hw_aravis.py). ``now``: the monotonic time (default: the clock's). Returns
         how many were let go."""
         now = time.monotonic() if now is None else now
-        keep = [(t, o) for t, o in self.graveyard
-                if not force and now - t < self.RELEASE_AFTER_S]
-        n = len(self.graveyard) - len(keep)
-        self.graveyard = keep
+        old, self.graveyard, n = self.graveyard, [], 0
+        while old:
+            t, o = old.pop(0)
+            if not force and now - t < self.RELEASE_AFTER_S:
+                self.graveyard.append((t, o))
+            else:
+                box = [o]                # the reaper takes it out: no reference stays here
+                del o
+                REAPER.put(box)
+                n += 1
+            o = None
         return n
 
     def pop(self):
