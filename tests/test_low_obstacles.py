@@ -81,6 +81,20 @@ def test_compact_novelty_keeps_the_lying_person(approach):
     assert sum(hits) >= 3, hits
 
 
+def test_low_band_by_day_only(approach):
+    """``low_band_night = false``: the low band counts by day only (at night the novelty mask
+    is the strobe's lit region, where the low band locked drives in). The same frames stamped
+    as night frames: with the option the low band adds nothing to them; by day it holds the
+    person as before."""
+    night = [(dataclasses.replace(st, illumination="night-strobe"), veh, tr)
+             for st, veh, tr in approach]
+    opts = dict(low_band_min_m=0.2, low_band_max_novel_share=0.0, low_band_night=False)
+    hits_night, _ = _run(night, **opts)
+    assert not any(hits_night), hits_night
+    hits_day, _ = _run(approach, **opts)
+    assert sum(hits_day) >= 3, hits_day
+
+
 def test_compact_novelty_mask_drops_large_regions():
     pipe = StereoNoveltyPipeline(dataclasses.replace(StereoNoveltyConfig(), model_state="off"),
                                  background=False)
@@ -113,6 +127,7 @@ def test_low_band_option_is_read_and_checked():
         (0.25, False, 0.1)
     d = StereoNoveltyConfig()
     assert (d.low_band_min_m, d.low_band_feedback) == (0.0, True)      # off by default
+    assert d.low_band_night                           # ... and at night too when turned on
     assert d.low_band_max_novel_share == 0.1          # ... and compact when turned on
     with pytest.raises(ConfigError) as e:
         parse_config({"perception": {"pipelines": ["stereo-novelty"],

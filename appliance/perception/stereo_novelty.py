@@ -206,6 +206,10 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
                                              "docs/front-end.md 'Low obstacles'; with the low "
                                              "band on, training: 63 -> 35 false stops, the "
                                              "same collisions); 0 = any")
+    low_band_night: bool = _f(True, doc="low_band_min_m: at night (strobe) too; false: by day "
+                                        "only (at night the novelty mask is the strobe's lit "
+                                        "region, where the low band locked drives in on the "
+                                        "acceptance seeds)")
     low_band_feedback: bool = _f(True, doc="low_band_min_m: its points keep their cells out of "
                                             "the novelty model's update like any obstacle point "
                                             "(false: they are learnt, so low stubble in a novel "
@@ -538,7 +542,8 @@ class StereoNoveltyPipeline(Pipeline):
         h = heights_above(ground, pts, o, calib.mount.z_m)
         keep = band_mask(pts, h, o.band_min_m, o.band_max_m, o.max_range_m)
         low_added = None
-        if 0 < o.low_band_min_m < o.band_min_m and len(pts):
+        low_on = o.low_band_night or getattr(fr, "illumination", "day") == "day"
+        if low_on and 0 < o.low_band_min_m < o.band_min_m and len(pts):
             low = band_mask(pts, h, o.low_band_min_m, o.band_min_m, o.max_range_m) & ~keep
             if low.any():
                 idx = np.flatnonzero(low)
