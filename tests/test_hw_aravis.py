@@ -187,7 +187,8 @@ def test_fake_gige_pair_through_the_daemon(netns, calibration, tmp_path):
     # camera pulled out: silent; stale 60 ms after its next pair was due (timeout_s 0.16 s = one
     # 10 Hz period + 60 ms), STOP within two cycles of that moment (and so within three of the
     # kill, which can come up to a period before the missing pair was due)
-    assert res["clear_before_kill"]
+    assert res["clear_before_kill"], json.dumps({k: res.get(k) for k in (
+        "states_before_kill", "driver_trace_before_kill", "counters")})
     assert res["stop_cycles_after_due"] is not None and res["stop_cycles_after_due"] <= 2, res
     assert res["stop_cycles_after_kill"] <= 3
     assert "stereo" in res["stop_reason"]
@@ -279,6 +280,10 @@ def _child(cal_path: str) -> int:
                    resent_packets=c.get("resent_packets", 0) + c.get("missing_packets", 0),
                    selftest=list(dev.selftest()))
         res["clear_before_kill"] = wait_for(lambda: rig.state == "CLEAR", 5.0)
+        if not res["clear_before_kill"]:                # why not: what the daemon said
+            res["states_before_kill"] = sorted({(c[1], " ".join(c[2])[:160])
+                                                for c in list(rig.cycles)[-30:]})
+            res["driver_trace_before_kill"] = [(round(t, 2), w) for t, w in list(trace)[-20:]]
         t_kill = rig.now()
         left.kill()
         left.wait()
