@@ -253,6 +253,68 @@ def format_compare(c: dict) -> str:
     return "\n".join(lines)
 
 
+def compare_png(c: dict, out) -> Path:
+    """One picture of the comparison: per drive, A's and B's false stops (bars), collisions
+    (crosses) and when the drives first parted (a mark on the drive's time line: green where
+    B was better there, red where worse, grey when not the box's doing)."""
+    import cv2
+
+    from appliance.campaign_report import BLACK, FONT, GREY, LIGHT, _blank, text
+    A_COL, B_COL = (180, 110, 30), (0, 140, 255)
+    drives = c["drives"]
+    row_h, top, w = 24, 70, 1000
+    img = _blank(w, top + row_h * max(1, len(drives)) + 60)
+    text(img, f"A = {c['a']}   B = {c['b']}", (10, 20), 0.45)
+    text(img, "false stops (A blue, B orange)", (260, 50), 0.42, GREY)
+    text(img, "collisions", (560, 50), 0.42, GREY)
+    text(img, "first difference in the drive (green: B better, red: B worse)", (660, 50),
+         0.42, GREY)
+    fmax = max([1] + [max(d["a"]["false_stops"], d["b"]["false_stops"]) for d in drives])
+    for i, d in enumerate(drives):
+        y = top + i * row_h
+        if i % 2:
+            cv2.rectangle(img, (0, y - 2), (w, y + row_h - 2), (245, 245, 245), -1)
+        text(img, f"{d['kind']}-{d['seed']}", (10, y + 14), 0.4)
+        for j, (side, col) in enumerate((("a", A_COL), ("b", B_COL))):
+            n = int(d[side]["false_stops"] or 0)
+            L = int(250 * n / fmax)
+            yy = y + 2 + j * 9
+            cv2.rectangle(img, (260, yy), (260 + max(L, 1), yy + 7), col, -1)
+            text(img, str(n), (264 + L, yy + 8), 0.33)
+        for j, (side, col) in enumerate((("a", A_COL), ("b", B_COL))):
+            for k in range(int(d[side]["collisions"] or 0)):
+                cx, cy = 565 + j * 40 + k * 9, y + 10
+                cv2.line(img, (cx - 3, cy - 3), (cx + 3, cy + 3), col, 2)
+                cv2.line(img, (cx - 3, cy + 3), (cx + 3, cy - 3), col, 2)
+        x0, x1 = 660, w - 20
+        cv2.line(img, (x0, y + 10), (x1, y + 10), LIGHT, 2)
+        f = d["first_difference"]
+        total = float(d["a"]["simulated_s"] or 0.0) or 1.0
+        if f is not None and f.get("t_s") is not None:
+            if f.get("cautious") is None:
+                col = GREY
+            else:
+                good = (f["cautious"] == "b") == (f["judgement"] == "right")
+                col = (0, 160, 0) if good else (0, 0, 220)
+            cx = int(x0 + (x1 - x0) * min(1.0, f["t_s"] / total))
+            cv2.circle(img, (cx, y + 10), 5, col, -1)
+            lab = f"{f['a']['state']}/{f['b']['state']}"
+            tw = cv2.getTextSize(lab, FONT, 0.33, 1)[0][0]
+            tx = cx + 8 if cx + 8 + tw <= x1 else cx - 8 - tw
+            text(img, lab, (tx, y + 14), 0.33, BLACK)
+    p = c["paired"]
+    yb = top + row_h * max(1, len(drives)) + 20
+    text(img, f"first differences: B better {p['first_difference']['b_better']}, worse "
+              f"{p['first_difference']['b_worse']} (p = {p['first_difference']['sign_test_p']}); "
+              f"false stops A {c['totals']['a']['false_stops']}, B "
+              f"{c['totals']['b']['false_stops']}; collisions A {c['totals']['a']['collisions']}"
+              f", B {c['totals']['b']['collisions']}", (10, yb), 0.45)
+    out = Path(out)
+    if not cv2.imwrite(str(out), img):
+        raise CompareError(f"{out}: cannot write the picture")
+    return out
+
+
 def register(sub) -> None:
     c = sub.add_parser(
         "campaign-compare", help="compare two campaigns of the same drives, drive by drive",
@@ -264,6 +326,7 @@ def register(sub) -> None:
     c.add_argument("a", metavar="A", help="campaign folder (the baseline)")
     c.add_argument("b", metavar="B", help="campaign folder (the change)")
     c.add_argument("--json", action="store_true", help="print the comparison as JSON")
+    c.add_argument("--png", metavar="FILE", help="also draw the comparison into FILE (.png)")
     c.set_defaults(func=cmd_compare)
 
 
@@ -271,6 +334,8 @@ def cmd_compare(a) -> int:
     import sys
     try:
         c = compare(a.a, a.b)
+        if a.png:
+            compare_png(c, a.png)
     except CompareError as exc:
         print(f"fieldguard campaign-compare: {exc}", file=sys.stderr)
         return 2

@@ -70,6 +70,23 @@ def test_the_cli_prints_the_table_and_json(two, capsys):
     assert json.loads(capsys.readouterr().out)["paired"]["first_difference"]["b_better"] == 2
 
 
+def test_the_picture(two, tmp_path, capsys):
+    import cv2
+    import numpy as np
+    png = tmp_path / "cmp.png"
+    assert main(["campaign-compare", str(two["paper"]), str(two["default"]),
+                 "--png", str(png)]) == 0
+    img = cv2.imread(str(png))
+    assert img is not None and img.shape[1] == 1000
+    # both drives' first differences were B better: two green marks, no red one
+    green = (img[:, :, 1] > 140) & (img[:, :, 0] < 40) & (img[:, :, 2] < 40)
+    red = (img[:, :, 2] > 200) & (img[:, :, 0] < 40) & (img[:, :, 1] < 40)
+    assert green.sum() > 2 * 40 and red.sum() == 0
+    assert main(["campaign-compare", str(two["paper"]), str(two["default"]),
+                 "--png", str(tmp_path / "no" / "such" / "dir" / "x.png")]) == 2
+    assert "cannot write the picture" in capsys.readouterr().err
+
+
 def _rows(states, near=None, zone=3.8):
     return [{"t_s": f"{i / 10:.1f}", "x_m": f"{i * 0.25:.2f}", "y_m": "0.00",
              "speed_mps": "2.50", "state": s, "reason": s.lower(), "stop_zone_m": f"{zone}",
