@@ -95,6 +95,17 @@ def test_low_band_by_day_only(approach):
     assert sum(hits_day) >= 3, hits_day
 
 
+def test_low_band_waits_for_a_model_that_has_learnt(approach):
+    """``low_band_min_updates``: the low band counts only once the novelty model holds that
+    many updates (at start-up a model of one frame calls much of the field novel, and the low
+    band stopped a training drive for its stubble at 2.7 s). A model that never gets there
+    adds nothing to the approach; the default (2) holds the person as before."""
+    never, _ = _run(approach, low_band_min_m=0.2, low_band_max_novel_share=0.0,
+                    low_band_min_updates=1000)
+    assert not any(never), never
+    assert StereoNoveltyConfig().low_band_min_updates == 2
+
+
 def test_compact_novelty_mask_drops_large_regions():
     pipe = StereoNoveltyPipeline(dataclasses.replace(StereoNoveltyConfig(), model_state="off"),
                                  background=False)

@@ -210,6 +210,12 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
                                         "only (at night the novelty mask is the strobe's lit "
                                         "region, where the low band locked drives in on the "
                                         "acceptance seeds)")
+    low_band_min_updates: int = _f(2, lo=0, hi=1000,
+                                   doc="low_band_min_m: counts only once the novelty model "
+                                       "holds this many updates (a model that has learnt one "
+                                       "frame calls much of the field novel: at start-up the "
+                                       "low band stopped a training drive for its stubble at "
+                                       "2.7 s); 0 = from the first frame")
     low_band_feedback: bool = _f(True, doc="low_band_min_m: its points keep their cells out of "
                                             "the novelty model's update like any obstacle point "
                                             "(false: they are learnt, so low stubble in a novel "
@@ -542,7 +548,8 @@ class StereoNoveltyPipeline(Pipeline):
         h = heights_above(ground, pts, o, calib.mount.z_m)
         keep = band_mask(pts, h, o.band_min_m, o.band_max_m, o.max_range_m)
         low_added = None
-        low_on = o.low_band_night or getattr(fr, "illumination", "day") == "day"
+        low_on = ((o.low_band_night or getattr(fr, "illumination", "day") == "day")
+                  and self.novelty.model.updates >= o.low_band_min_updates)
         if low_on and 0 < o.low_band_min_m < o.band_min_m and len(pts):
             low = band_mask(pts, h, o.low_band_min_m, o.band_min_m, o.max_range_m) & ~keep
             if low.any():
