@@ -75,11 +75,16 @@ def _num(v):
     return x if math.isfinite(x) else None
 
 
-def first_difference(rows_a: list[dict], rows_b: list[dict], reach_extra_m: float) -> dict | None:
+EARLY_M = 5.0      # a real obstacle this much beyond the zones: caution early, not a phantom
+
+
+def first_difference(rows_a: list[dict], rows_b: list[dict], reach_extra_m: float,
+                     early_m: float = EARLY_M) -> dict | None:
     """The first cycle where the two drives part (the box's state, or the vehicle's position or
     speed, differ), with what each box said and the truth there; None if they never part.
     ``reach_extra_m``: how far beyond the stop zone a real obstacle still makes caution right
-    (the slow zone's extra length)."""
+    (the slow zone's extra length); up to ``early_m`` beyond that it is *early* (neither right
+    nor a phantom: a SLOW for a person 7 m ahead when the zones reach 5 m)."""
     for ra, rb in zip(rows_a, rows_b):
         same_state = ra.get("state") == rb.get("state")
         same_place = all(ra.get(k) == rb.get(k) for k in ("x_m", "y_m", "speed_mps"))
@@ -95,11 +100,12 @@ def first_difference(rows_a: list[dict], rows_b: list[dict], reach_extra_m: floa
         # the truth of the cycle the decisions parted in (positions still equal then)
         near = _num(ra.get("real_nearest_m"))
         zone = _num(ra.get("stop_zone_m")) or 0.0
-        real = near is not None and near <= zone + reach_extra_m
+        reach = zone + reach_extra_m
+        judgement = ("right" if near is not None and near <= reach else
+                     "early" if near is not None and near <= reach + early_m else "phantom")
         cautious = "a" if RANK.get(ra.get("state"), 2) > RANK.get(rb.get("state"), 2) else "b"
         out.update(real_nearest_m=near, real_obstacle=ra.get("real_obstacle", ""),
-                   stop_zone_m=zone, cautious=cautious,
-                   judgement=("right" if real else "phantom"))
+                   stop_zone_m=zone, cautious=cautious, judgement=judgement)
         return out
     if len(rows_a) != len(rows_b):
         n = min(len(rows_a), len(rows_b))
@@ -171,10 +177,13 @@ def compare(dir_a, dir_b, reach_extra_m: float | None = None) -> dict:
     cmore = sum(1 for d in drives if d["b"]["collisions"] > d["a"]["collisions"])
     # first differences, as B against A: B's caution right, or A's caution a phantom, is
     # B better there; B's caution a phantom, or A's caution right, is B worse
-    better = worse = 0
+    better = worse = early = 0
     for d in drives:
         f = d["first_difference"]
         if not f or f.get("cautious") is None:
+            continue
+        if f["judgement"] == "early":
+            early += 1
             continue
         good_for_b = (f["cautious"] == "b") == (f["judgement"] == "right")
         better += good_for_b
@@ -196,7 +205,7 @@ def compare(dir_a, dir_b, reach_extra_m: float | None = None) -> dict:
             "collisions": {"b_fewer": cfewer, "b_more": cmore,
                            "same": len(drives) - cfewer - cmore,
                            "sign_test_p": round(sign_test(cfewer, cmore), 4)},
-            "first_difference": {"b_better": better, "b_worse": worse,
+            "first_difference": {"b_better": better, "b_worse": worse, "early": early,
                                  "never_parted": sum(1 for d in drives
                                                      if d["first_difference"] is None),
                                  "sign_test_p": round(sign_test(better, worse), 4)},
@@ -216,7 +225,8 @@ def _first_text(f: dict | None) -> str:
     truth = ("nothing real ahead" if near is None else
              f"real {f.get('real_obstacle') or 'obstacle'} {near:.1f} m, zone {f['stop_zone_m']:.1f} m")
     who = f["cautious"].upper()
-    return f"{head}; {truth}: {who}'s caution {'right' if f['judgement'] == 'right' else 'a phantom'}"
+    verdict = {"right": "right", "early": "early", "phantom": "a phantom"}[f["judgement"]]
+    return f"{head}; {truth}: {who}'s caution {verdict}"
 
 
 def format_compare(c: dict) -> str:
@@ -249,7 +259,8 @@ def format_compare(c: dict) -> str:
     lines.append(f"paired, collisions: B fewer in {co['b_fewer']} drives, more in "
                  f"{co['b_more']}, same in {co['same']} (sign test p = {co['sign_test_p']})")
     lines.append(f"first differences: B better in {fd['b_better']}, worse in {fd['b_worse']}, "
-                 f"never parted {fd['never_parted']} (sign test p = {fd['sign_test_p']})")
+                 f"early (not counted) {fd['early']}, never parted {fd['never_parted']} "
+                 f"(sign test p = {fd['sign_test_p']})")
     return "\n".join(lines)
 
 
@@ -291,7 +302,7 @@ def compare_png(c: dict, out) -> Path:
         f = d["first_difference"]
         total = float(d["a"]["simulated_s"] or 0.0) or 1.0
         if f is not None and f.get("t_s") is not None:
-            if f.get("cautious") is None:
+            if f.get("cautious") is None or f["judgement"] == "early":
                 col = GREY
             else:
                 good = (f["cautious"] == "b") == (f["judgement"] == "right")

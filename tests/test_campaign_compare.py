@@ -65,7 +65,7 @@ def test_two_laser_configurations_part_at_a_tuft(two):
 def test_the_cli_prints_the_table_and_json(two, capsys):
     assert main(["campaign-compare", str(two["paper"]), str(two["default"])]) == 0
     text = capsys.readouterr().out
-    assert "stubble-coverage-1" in text and "first differences: B better in 2" in text
+    assert "stubble-coverage-1" in text and "first differences: B better in 2, worse in 0, early" in text
     assert main(["campaign-compare", str(two["paper"]), str(two["default"]), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["paired"]["first_difference"]["b_better"] == 2
 
@@ -102,6 +102,9 @@ def test_first_difference_judges_caution_against_the_truth():
     near = first_difference(_rows(["CLEAR", "STOP"], near=4.0),
                             _rows(["CLEAR", "CLEAR"], near=4.0), reach_extra_m=3.0)
     assert near["cautious"] == "a" and near["judgement"] == "right"
+    early = first_difference(_rows(["CLEAR", "SLOW"], near=9.0),
+                             _rows(["CLEAR", "CLEAR"], near=9.0), reach_extra_m=3.0)
+    assert early["cautious"] == "a" and early["judgement"] == "early"   # zones reach 6.8 m
     nothing = first_difference(_rows(["STOP", "STOP"]), _rows(["STOP", "CLEAR"]), 3.0)
     assert nothing["judgement"] == "phantom" and nothing["real_nearest_m"] is None
     assert first_difference(a, a, 3.0) is None
