@@ -189,7 +189,9 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
     # and kept one night drive standing (docs/front-end.md "Low obstacles"). Eleventh session:
     # with low_band_max_novel_share it halved the training collisions (12 -> 6) for 4 more
     # false stops, but on the acceptance seeds it made 73 false stops against 40 (night
-    # drives locked in) and no fewer collisions: off again
+    # drives locked in) and no fewer collisions: off again. Fifteenth session, by day only
+    # (low_band_night = false): training two dogs held for no more false stops, acceptance
+    # the same four dogs hit and 22 -> 24 false stops (docs/proving-ground.md "Paired"): off
     low_band_min_m: float = _f(0.0, lo=0.0, hi=10.0,
                                doc="issue #14 (lying people, dogs): obstacle points from this "
                                    "height up to band_min_m count too when novelty or the "
