@@ -550,9 +550,9 @@ class StereoNoveltyPipeline(Pipeline):
         h = heights_above(ground, pts, o, calib.mount.z_m)
         keep = band_mask(pts, h, o.band_min_m, o.band_max_m, o.max_range_m)
         low_added = None
-        low_on = ((o.low_band_night or getattr(fr, "illumination", "day") == "day")
-                  and self.novelty.model.updates >= o.low_band_min_updates)
-        if low_on and 0 < o.low_band_min_m < o.band_min_m and len(pts):
+        if (0 < o.low_band_min_m < o.band_min_m and len(pts)
+                and (o.low_band_night or fr.illumination == "day")
+                and self.novelty.model.updates >= o.low_band_min_updates):
             low = band_mask(pts, h, o.low_band_min_m, o.band_min_m, o.max_range_m) & ~keep
             if low.any():
                 idx = np.flatnonzero(low)
