@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from drivers.sim import SimField
-from drivers.sim.scenes import SCENE_KINDS, SCENES, build_scene
+from drivers.sim.scenes import COVERAGE_LANES, SCENE_KINDS, SCENES, build_scene
 from hal.types import GateState
 
 COVERAGE = ("stubble-coverage", "stubble-coverage-night", "greenhouse-coverage")
@@ -249,6 +249,39 @@ def test_thin_scene_is_the_coverage_field_with_thin_short_things_in_the_path():
         if o.cls == "dog-head-on":      # its length along the lane: narrow to the vehicle
             assert abs(math.cos(math.radians(o.yaw_deg))) > math.cos(math.radians(16))
     assert set(t.in_path_ids()) == {o.id for o in t.obstacles}
+
+
+def test_crossing_scene_is_the_coverage_field_with_only_walkers_crossing_each_lane():
+    """stubble-crossing: the stubble-coverage field of the seed with 2-3 walkers a lane, drawn
+    as stubble-coverage's walkers (what a decision on movers is measured on)."""
+    c, x, n = (build_scene(k, 3) for k in ("stubble-coverage", "stubble-crossing",
+                                            "stubble-crossing-night"))
+    assert {k: v for k, v in x.params.items() if k not in ("obstacles", "walkers")} == \
+        {k: v for k, v in c.params.items() if k not in ("obstacles", "walkers")}
+    assert x.world.waves.tobytes() == c.world.waves.tobytes()
+    assert _sig(x)[1:] == _sig(n)[1:] and n.illumination == "night-strobe"
+    assert x.illumination == "day" and _sig(x) == _sig(build_scene("stubble-crossing", 3))
+    length, spacing, passes = COVERAGE_LANES
+    for seed in range(4):
+        sc = build_scene("stubble-crossing", seed)
+        obs = sc.obstacles
+        assert sc.params["walkers"] == len(obs)
+        assert all(o.moving and o.placement == "crossing" for o in obs)
+        assert all(o.cls == "person" or o.tone == "animal" for o in obs)
+        for o in obs:
+            assert 0.6 - 1e-9 <= math.hypot(o.vx_mps, o.vy_mps) <= 3.0 + 1e-9
+        per_lane = {}
+        for o in obs:
+            x_cross = o.x_start + o.vx_mps * o.walk_time_s / 2
+            y_cross = o.y_start + o.vy_mps * o.walk_time_s / 2
+            lane = int(round(y_cross / spacing))
+            assert abs(y_cross - lane * spacing) < 1e-6            # mid-walk on its lane
+            assert 4.0 - 1e-6 <= abs(o.y_start - y_cross) <= 9.0 + 1e-6   # from 4-9 m aside
+            per_lane.setdefault(lane, []).append(x_cross)
+        assert set(per_lane) == set(range(passes))
+        for xs in per_lane.values():
+            xs = sorted(xs)
+            assert 2 <= len(xs) <= 3 and all(b - a >= 40.0 - 1e-6 for a, b in zip(xs, xs[1:]))
 
 
 def test_a_thin_stake_is_drawn_by_the_stereo_camera_at_8_m():

@@ -83,6 +83,12 @@ SCENE_KINDS: dict[str, str] = {
                     "stubble tufts must not drop; docs/simulator.md)",
     "stubble-thin-night": "the stubble-thin field and obstacles of the same seed at night, lit "
                           "only by the strobe at the cameras",
+    "stubble-crossing": "the stubble-coverage field of the seed by day with only people and "
+                        "animals walking across the lanes (2-3 a lane, drawn as the walkers of "
+                        "stubble-coverage: 4-9 m to a side, 0.6-3 m/s, reaching the lane when the "
+                        "vehicle is -5..25 m from them): what a decision on movers must stop for",
+    "stubble-crossing-night": "the stubble-crossing field and walkers of the same seed at "
+                              "night, lit only by the strobe at the cameras",
     "stubble-lookalike": "the stubble-day field and obstacle course with the obstacles that look "
                          "like the field: a person in khaki on the path, the stubble-coloured "
                          "drum and a stubble-textured crate (the learned cue's hard cases)",
@@ -391,7 +397,7 @@ def build_scene(name: str, seed: int = 0) -> Scene:
         raise ValueError(f"unknown scene {name!r}; known scenes: {', '.join(sorted(SCENES))}")
     seed = int(seed)
     if name in ("stubble-coverage", "stubble-coverage-night", "stubble-thin",
-                "stubble-thin-night"):
+                "stubble-thin-night", "stubble-crossing", "stubble-crossing-night"):
         return _stubble_coverage(name, seed)
     if name == "greenhouse-coverage":
         return _greenhouse_coverage(name, seed)
@@ -726,6 +732,34 @@ def _thin_obstacles(rng, length_m: float, passes: int, spacing_m: float,
     return obs
 
 
+def _crossing_obstacles(rng, length_m: float, spacing_m: float, passes: int, lanes: list,
+                        cruise: float, headland_m: float) -> list:
+    """2-3 walkers crossing every lane (at least 40 m apart; none in the first 60 m of the
+    first lane), people standing (60 %) or animals, made walkers by ``_walker`` exactly as the
+    walkers of stubble-coverage are (side, offset, speed, angle, when they set off)."""
+    obs: list[Obstacle] = []
+    for p in range(passes):
+        y = p * spacing_m
+        s0, _ = lanes[p]
+        fwd = p % 2 == 0
+        lo = 60.0 if p == 0 else headland_m + 10.0
+        xs: list[float] = []
+        n = int(rng.integers(2, 4))
+        for _ in range(80):
+            if len(xs) == n:
+                break
+            x = float(rng.uniform(lo, length_m - headland_m - 15.0))
+            if all(abs(x - q) >= 40.0 for q in xs):
+                xs.append(x)
+        for x in sorted(xs, reverse=not fwd):
+            oid = f"w{len(obs) + 1}"
+            o = (_person(rng, oid, x, y, "standing") if rng.uniform() < 0.6
+                 else _animal(rng, oid, x, y))
+            s_cross = s0 + (x if fwd else length_m - x)
+            obs.append(_walker(rng, o, y, x, s_cross, cruise))
+    return obs
+
+
 def _stubble_coverage(kind: str, seed: int) -> Scene:
     rng = np.random.default_rng([seed, 21])             # the field: day and night share it
     fp = _draw_stubble_field(rng)
@@ -739,6 +773,9 @@ def _stubble_coverage(kind: str, seed: int) -> Scene:
     if kind.startswith("stubble-thin"):         # the same field (its own draws: [seed, 21] above), other obstacles
         obstacles = _thin_obstacles(np.random.default_rng([seed, 24]), length, passes, spacing,
                                     headland)
+    elif kind.startswith("stubble-crossing"):   # the same field, only walkers
+        obstacles = _crossing_obstacles(np.random.default_rng([seed, 25]), length, spacing,
+                                        passes, lanes, cruise, headland)
     else:
         orng = np.random.default_rng([seed, 22])
         obstacles = _coverage_stubble_obstacles(orng, length, spacing, passes, lanes, cruise,
