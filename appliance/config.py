@@ -167,6 +167,24 @@ class TrackingConfig:
                                   "saw is held unseen this long, whatever its evidence (0 = off)")
     laser_fast: bool = _f(True, doc="a laser return cluster counts at full strength and "
                                      "confirms on the first frame it is seen")
+    movers: bool = _f(False, doc="with the cell decision (enabled = false): also track what "
+                                 "the grid holds, and STOP for a confirmed track moving over "
+                                 "ground that, moving on as it does while the vehicle drives "
+                                 "on, meets the vehicle within movers_horizon_s (SLOW within "
+                                 "twice that): a person walking in from the side, outside the "
+                                 "zones until it is too late (docs/tracking.md 'Movers')")
+    movers_min_mps: float = _f(0.5, lo=0.0, hi=50.0,
+                               doc="movers: slower over ground than this is not a mover")
+    movers_min_hits: int = _f(5, lo=1, hi=100,
+                              doc="movers: frames a track is seen in before its velocity is used")
+    movers_horizon_s: float = _f(0.0, lo=0.0, hi=10.0,
+                                 doc="movers: how far ahead a meeting is looked for (0 = the "
+                                     "time the vehicle needs to come to rest from its present "
+                                     "speed, [zones] reaction_time_s + speed / decel_mps2, and "
+                                     "0.5 s for the velocity's lag)")
+    movers_body_m: float = _f(3.0, lo=0.0, hi=50.0,
+                              doc="movers: the vehicle's length behind [zones] front_x_m (a "
+                                  "mover walking into its side is met too)")
     weights: SourceWeights = field(default_factory=SourceWeights)
 
 

@@ -17,7 +17,7 @@ Pure code: arrays in, verdicts out.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -147,6 +147,9 @@ class DecisionCore:
         self.cfg = cfg
         self.grid = GridFusion(cfg.grid)
         self.tracker = Tracker(cfg.tracking, cfg.grid) if cfg.tracking.enabled else None
+        # [tracking] movers: the cell decision, and a tracker beside it for what moves
+        self.movers = (Tracker(cfg.tracking, cfg.grid)
+                       if cfg.tracking.movers and not cfg.tracking.enabled else None)
         self.gate = SafetyGate(cfg.gate, cfg.zones)
         self.last: Picture | None = None
         self.curvature_1pm = 0.0          # the arc the zones bend along ([zones] follow_turn)
@@ -229,6 +232,8 @@ class DecisionCore:
             pic = Picture(grid_cells, assess(grid_cells, speed, self.cfg.zones, conf,
                                              cell_m=g.cell_m, curvature_1pm=kappa),
                           speed, grid_cells)
+            if self.movers is not None:
+                pic = self._with_movers(pic, detections, vehicle, now_ns)
         else:
             occ = self.grid.occupied_mask() if self.cfg.tracking.input == "occupied" else None
             z = self.cfg.zones
@@ -241,6 +246,61 @@ class DecisionCore:
                           speed, grid_cells, tracks)
         self.last = pic
         return pic
+
+    MOVER_STEP_S = 0.1            # movers: the meeting is looked for at these steps
+
+    def _with_movers(self, pic: Picture, detections: dict[str, Detections],
+                     vehicle: VehicleState | None, now_ns: int) -> Picture:
+        """``[tracking] movers``: the cells' verdict, and a STOP for a mover that meets the
+        vehicle within the horizon if both go on as they are (a SLOW within twice it).
+
+        A mover: a confirmed track seen this cycle, in ``movers_min_hits`` frames at least,
+        moving over ground at ``movers_min_mps`` or more. It meets the vehicle when, moved on
+        at its velocity relative to the vehicle (its own over ground less the vehicle's,
+        straight ahead), any part of its footprint comes within the vehicle's path width
+        (``[zones] half_width_m``) between ``movers_body_m`` behind the front and the front:
+        it walks into the front or the side. A person walking in from the side is outside the
+        stop zone until it is too late to stop at cruise speed, and cells never predict; one
+        that crosses well ahead of the vehicle, or behind it, does not meet it. The cells'
+        STOP wins (it names what it stops for); a mover's STOP wins over the cells' SLOW."""
+        tc, z = self.cfg.tracking, self.cfg.zones
+        occ = self.grid.occupied_mask() if tc.input == "occupied" else None
+        speed = pic.speed_mps
+        tracks = self.movers.update(detections, vehicle, now_ns, occ, None)
+        movers = [t for t in tracks if t.confirmed and not t.coasting
+                  and t.hits >= tc.movers_min_hits
+                  and math.hypot(t.vx_mps, t.vy_mps) >= tc.movers_min_mps]
+        if not movers:
+            return pic if not pic.tracks else replace(pic, tracks=[])
+        horizon = tc.movers_horizon_s or (z.reaction_time_s + max(0.0, speed) / z.decel_mps2
+                                          + 0.5)
+        steps = np.arange(0.0, 2 * horizon + 1e-9, self.MOVER_STEP_S)
+        body = {"x_min_m": z.front_x_m - tc.movers_body_m, "x_max_m": z.front_x_m,
+                "half_width_m": z.half_width_m}
+        first = []                                   # (time it meets the vehicle, track)
+        for t in movers:
+            rel = np.array([t.vx_mps - max(0.0, speed), t.vy_mps])
+            xy = np.array([t.x_m, t.y_m])[None] + steps[:, None] * rel[None]
+            meet = footprints_meet(xy, t.length_m, t.width_m, body)
+            if meet.any():
+                first.append((float(steps[int(np.argmax(meet))]), t))
+        v = pic.verdict
+        if not first or v.in_stop:
+            return replace(pic, tracks=movers)
+        t_meet, t = min(first, key=lambda a: a[0])
+        ahead = max(0.0, t.x_m - t.length_m / 2 - z.front_x_m)
+        nearest = ahead if v.nearest_m is None else min(v.nearest_m, ahead)
+        what = (f"moving obstacle track {t.id} ({'+'.join(t.sources) or '?'}) {ahead:.1f} m "
+                f"ahead, {t.y_m:+.1f} m aside, moving {math.hypot(t.vx_mps, t.vy_mps):.1f} m/s"
+                f": meets the vehicle in {t_meet:.1f} s")
+        ids = tuple(m.id for _, m in first)
+        if t_meet <= horizon + 1e-9:
+            v = replace(v, in_stop=len([1 for a, _ in first if a <= horizon + 1e-9]),
+                        stop_reason=what, nearest_m=nearest, track_ids=ids)
+        elif not v.in_slow:
+            v = replace(v, in_slow=len(first), slow_reason=what, nearest_m=nearest,
+                        track_ids=ids)
+        return replace(pic, verdict=v, tracks=movers)
 
     def decide(self, now_ns: int, faults: list[str], picture: Picture | None,
                source_stamp_ns: int | None = None) -> GateOutput:

@@ -530,7 +530,8 @@ def evaluate_run(path: str | os.PathLike, pipeline: str | None = None, config=No
     res = agg.result()
     res.update(stops.result())
     res.update({"run": info.name, "path": str(Path(path)), "pipeline": label,
-                "decision": "tracks" if cfg.tracking.enabled else "cells",
+                "decision": ("tracks" if cfg.tracking.enabled else
+                             "cells+movers" if cfg.tracking.movers else "cells"),
                 "frames_total": n, "frames_missing_input": missing_input,
                 # frames left out of the score: a sensor file missing, or corrupt (named)
                 "frames_missing": len(lost), "frames_missing_indices": lost,

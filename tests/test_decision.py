@@ -563,3 +563,103 @@ def test_stop_recur_the_default_waits_one_cycle_for_a_camera_cell_and_a_laser_re
         .stop_recur_now == ("laser", "rgbd")
     with pytest.raises(ConfigError, match="stop_recur_now"):
         parse_config({"grid": {"stop_recur_now": "laser"}}, "<t>")
+
+
+# --- [tracking] movers: the cell decision, and a STOP for what walks into the vehicle -------
+def _closed_loop(cfg, walker, seconds=8.0, source="laser"):
+    """The vehicle (origin X, 2.5 m/s, straight along +x; its body 0.4 m behind the origin to
+    2.6 m ahead, 1.5 m wide, as the simulator's) driven by the core's gate: on STOP it brakes
+    at 2 m/s^2 after the 0.5 s reaction, on SLOW it goes 1 m/s. ``walker(t)``: its world
+    centre (0.3 m x 0.45 m). Returns the first STOP time, the first contact time (None) and
+    the gate's outputs."""
+    core = DecisionCore(cfg)
+    x_v, v, braking_at = 0.0, 2.5, None
+    first_stop = contact = None
+    outs = []
+    for k in range(int(seconds * 10)):
+        t = k / 10
+        wx, wy = walker(t)
+        pts = _body(wx - x_v, wy)
+        pic = core.perceive({source: Detections(points_xy=pts)},
+                            VehicleState(k * DT, k, speed_mps=v), k * DT)
+        out = core.decide(k * DT, [], pic)
+        outs.append(out)
+        booting = k < 10                 # the gate's STOP while it boots (hold_off_s)
+        if out.state is GateState.STOP and first_stop is None and not booting:
+            first_stop = t
+        if out.state is GateState.STOP and braking_at is None and not booting:
+            braking_at = t + 0.5
+        if contact is None and (abs(wx - (x_v + 1.1)) < 1.5 + 0.15 and abs(wy) < 0.75 + 0.225):
+            contact = t
+        if braking_at is not None and t >= braking_at:
+            v = max(0.0, v - 0.2)
+        elif braking_at is None and out.state is GateState.SLOW and not booting:
+            v = max(1.0, v - 0.2)
+        x_v += v * 0.1
+    return first_stop, contact, outs
+
+
+def _movers_cfg(on: bool) -> Config:
+    return Config(gate=GateConfig(hold_off_s=1.0), zones=ZonesConfig(front_x_m=2.6),
+                  tracking=TrackingConfig(movers=on))
+
+
+def _setting_off(x0, y0, vx, vy, at_s):
+    """Stands at (x0, y0) until ``at_s``, then walks at (vx, vy)."""
+    return lambda t: (x0 + vx * max(0.0, t - at_s), y0 + vy * max(0.0, t - at_s))
+
+
+def test_movers_stop_for_a_person_walking_into_the_side_that_the_cells_drive_into():
+    """Training seed 15's crossing person (docs/tracking.md 'Movers'): standing 4.1 m to the
+    right, 3.3 m ahead of the front when it sets off at 1.3 m/s (0.53, 1.18) towards the lane.
+    It never stands in the stop zone: it meets the vehicle's side. The cells drive into it
+    with the box CLEAR; with movers the box stops in time and nothing is met."""
+    walker = _setting_off(2.6 + 2.0 * 2.5 + 3.3, -4.1, 0.53, 1.18, 2.0)
+    stop_off, contact_off, outs_off = _closed_loop(_movers_cfg(False), walker)
+    assert contact_off is not None
+    assert stop_off is None or stop_off >= contact_off - 0.5     # no STOP in time
+    stop_on, contact_on, outs_on = _closed_loop(_movers_cfg(True), walker)
+    assert contact_on is None, (stop_on, contact_on)
+    assert 2.0 < stop_on < 3.0
+    reason = outs_on[int(round(stop_on * 10))].reason
+    assert "moving obstacle track" in reason and "meets the vehicle in" in reason
+    assert "aside" in reason
+
+
+def test_movers_do_not_stop_for_a_walker_crossing_well_ahead_or_walking_alongside():
+    """What a forward STOP would not help: a walker that crosses 15 m ahead and is gone long
+    before the vehicle gets there, one walking alongside 2.5 m beside the path, a post 2 m
+    beside the path seen with 5 cm of jitter. No STOP, with or without movers."""
+    rng = np.random.default_rng(3)
+    jitter = rng.normal(0.0, 0.05, (100, 2))
+    cases = {
+        "crossing ahead": _setting_off(2.6 + 17.0, -3.0, 0.0, 1.5, 1.0),
+        "alongside": _setting_off(2.6 + 8.0, 2.5, 1.5, 0.0, 0.0),
+        "post": lambda t: (30.0 + jitter[int(t * 10), 0], 2.1 + jitter[int(t * 10), 1]),
+    }
+    for name, walker in cases.items():
+        for on in (False, True):
+            stop, contact, _ = _closed_loop(_movers_cfg(on), walker, seconds=10.0)
+            assert stop is None and contact is None, (name, on, stop, contact)
+
+
+def test_movers_wait_for_a_velocity_seen_over_frames_and_keep_the_cells_stop():
+    """A mover needs movers_min_hits frames before it is predicted; once it is in the stop
+    zone the STOP is the cells' (their reason), movers on or not. Open loop at 2.5 m/s: a
+    person first seen already walking in at 1.3 m/s from 3 m to the right, 6 m ahead."""
+    cfg = _movers_cfg(True)
+    core = DecisionCore(cfg)
+    assert core.movers is not None and core.tracker is None
+    assert DecisionCore(Config(tracking=TrackingConfig(movers=True, enabled=True))).movers is None
+    verdicts = []
+    for k in range(20):
+        pts = _body(2.6 + 6.0 - 0.25 * k, -3.0 + 0.13 * k)
+        pic = core.perceive({"laser": Detections(points_xy=pts)},
+                            VehicleState(k * DT, k, speed_mps=2.5), k * DT)
+        verdicts.append(pic.verdict)
+    moving = [k for k, v in enumerate(verdicts)
+              if v.in_stop and v.stop_reason and "moving obstacle" in v.stop_reason]
+    assert moving and moving[0] >= cfg.tracking.movers_min_hits - 1, moving
+    cells = [k for k, v in enumerate(verdicts) if v.in_stop and v.stop_reason is None]
+    assert cells and cells[0] > moving[0]        # the cells see it only once it is there
+    assert all(k in moving or k in cells for k in range(moving[0], 20))   # held throughout
