@@ -151,6 +151,24 @@ def start_sim_daemon(data: dict, source: str):
     return cfg, d, d.shared["sim_hub"].field
 
 
+def meets_vehicle(p: np.ndarray, v_xy, speed_mps: float, z, rear_m: float,
+                  zone_tol_m: float, lateral_tol_m: float) -> bool:
+    """The scorer's test for a walker (footprint points ``p`` in the level vehicle frame,
+    velocity over ground ``v_xy`` in the vehicle's axes): going on at that velocity while the
+    vehicle drives on straight at ``speed_mps``, does any of it come within the zones' width +
+    ``lateral_tol_m`` between the vehicle's rear (``rear_m`` behind its origin) and the front
+    + ``zone_tol_m``, before the vehicle could come to rest if it braked now ([zones]
+    reaction_time_s + speed / decel_mps2) + 0.5 s? Pure."""
+    speed = max(0.0, float(speed_mps))
+    rel = np.array([float(v_xy[0]) - speed, float(v_xy[1])])
+    horizon = z.reaction_time_s + speed / z.decel_mps2 + 0.5
+    steps = np.arange(0.0, horizon + 1e-9, 0.1)
+    q = np.asarray(p, np.float64).reshape(-1, 2)[None] + steps[:, None, None] * rel[None, None]
+    inside = ((q[..., 0] >= -rear_m) & (q[..., 0] <= z.front_x_m + zone_tol_m) &
+              (np.abs(q[..., 1]) <= z.half_width_m + lateral_tol_m))
+    return bool(inside.any())
+
+
 def cause_of(reason: str) -> str:
     """The gate's reason without its numbers: 'obstacle # m ahead in the stop zone (# m)'."""
     return _NUM.sub("#", reason).strip()
@@ -273,11 +291,30 @@ class Drive:
                 (p[:, 0] <= fx + stop_len_m - self.zone_tol_m)
             out.append({"k": k, "id": o.id, "cls": o.cls, "ahead": ahead, "pts": p,
                         "d_zone": float(np.hypot(dx, dy).min()),
+                        "meets": self._meets(o, p, rear, curvature_1pm),
                         "in_stop": ahead <= stop_len_m + self.zone_tol_m,
                         "in_slow": stop_len_m + self.zone_tol_m < ahead
                         <= stop_len_m + z.slow_extra_m + self.zone_tol_m,
                         "deep": bool(deep.any())})
         return out
+
+    def _meets(self, o, p: np.ndarray, rear: float, curvature_1pm: float) -> bool:
+        """A walker walking now that, going on at its true velocity while the vehicle drives
+        on at its speed, meets the vehicle (within the zones' width + lateral_tol_m, from its
+        rear to the front + zone_tol_m) before the vehicle could come to rest if it braked now
+        (reaction + speed / deceleration) + 0.5 s: a STOP for it is a true stop, as for an
+        obstacle in the stop zone. (Straight ahead: in a turn, not judged.)"""
+        t_now = float(getattr(self.field.world, "time_s", 0.0))
+        if curvature_1pm or not getattr(o, "moving", False):
+            return False
+        vx, vy = o.velocity_now(t_now)
+        if vx == 0.0 and vy == 0.0:
+            return False
+        speed = max(0.0, float(self.vehicle.speed))
+        _, _, yaw = self.vehicle.pose()
+        c, s_ = math.cos(yaw), math.sin(yaw)
+        return meets_vehicle(p, (vx * c + vy * s_, -vx * s_ + vy * c), speed, self.zones, rear,
+                             self.zone_tol_m, self.lateral_tol_m)
 
     def _held(self, cells: np.ndarray, pts: np.ndarray) -> bool:
         """Do the box's occupied cells lie on this footprint (within hold_m)?"""
@@ -317,7 +354,9 @@ class Drive:
         x, y, yaw = v.pose()
         is_stop = state is GateState.STOP
         obstacle_stop = is_stop and "stop zone" in out.reason
-        in_stop = [o for o in truth if o["in_stop"]]
+        # what a STOP is right for: an obstacle in the stop zone, or a walker about to meet the
+        # vehicle ([tracking] movers stops for those before they are in the zone)
+        in_stop = [o for o in truth if o["in_stop"] or o["meets"]]
         near = [o for o in truth if o["d_zone"] <= self.near_m]
         # detection streaks of the in-path obstacles ahead
         for o in truth:
@@ -334,7 +373,8 @@ class Drive:
         if is_stop and (self._prev_state not in (None, GateState.STOP) or (
                 obstacle_stop and self._episode is None and self._prev_state is not None)):
             fault = not obstacle_stop and not out.reason.startswith("holding")
-            nearest = min(in_stop, key=lambda o: o["ahead"]) if in_stop else None
+            nearest = min(in_stop, key=lambda o: (not o["in_stop"], o["ahead"])) \
+                if in_stop else None
             kind = "fault" if fault and res.faults else ("true" if nearest else "false")
             beyond = [o for o in truth if o["in_slow"]]
             pipes = self._pipelines_in_stop(res, stop_len, kappa)
@@ -348,7 +388,8 @@ class Drive:
                   "stop_zone_m": round(stop_len, 2), "reason": out.reason, "cause": cause,
                   "place": place, "pipelines": pipes,
                   "obstacle": f"{nearest['id']}/{nearest['cls']}" if nearest else "",
-                  "real_nearest_m": None if nearest is None else round(nearest["ahead"], 2),
+                  "real_nearest_m": None if nearest is None or not math.isfinite(
+                      nearest["ahead"]) else round(nearest["ahead"], 2),
                   "duration_s": None}
             self.counts[kind] += 1
             self.events.append(ev)
@@ -360,7 +401,8 @@ class Drive:
                     "obstacle": nearest["id"], "cls": nearest["cls"],
                     "t_s": round(t_s, 1),
                     "distance_m": None if start is None else round(start, 2),
-                    "ahead_at_stop_m": round(nearest["ahead"], 2),
+                    "ahead_at_stop_m": round(nearest["ahead"], 2)
+                    if math.isfinite(nearest["ahead"]) else None,
                     "speed_mps": round(v.speed, 2)})
         if not is_stop and self._episode is not None:
             self._episode["duration_s"] = round(t_s - self._episode["t_s"], 1)

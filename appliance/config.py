@@ -168,15 +168,29 @@ class TrackingConfig:
     laser_fast: bool = _f(True, doc="a laser return cluster counts at full strength and "
                                      "confirms on the first frame it is seen")
     movers: bool = _f(False, doc="with the cell decision (enabled = false): also track what "
-                                 "the grid holds, and STOP for a confirmed track moving over "
-                                 "ground that, moving on as it does while the vehicle drives "
-                                 "on, meets the vehicle within movers_horizon_s (SLOW within "
-                                 "twice that): a person walking in from the side, outside the "
-                                 "zones until it is too late (docs/tracking.md 'Movers')")
+                                 "the grid holds, and STOP for a mover that, going on as it "
+                                 "does while the vehicle drives on, meets the vehicle within "
+                                 "movers_horizon_s (SLOW within twice that): a person walking "
+                                 "in from the side, outside the zones until it is too late "
+                                 "(docs/tracking.md 'Movers')")
+    movers_input: str = _f("hits", choices=("occupied", "hits"),
+                           doc="movers: what their tracker clusters (a walker's cells move: "
+                               "they are rarely hit twice running, so rarely 'occupied')")
+    movers_min_run: int = _f(5, lo=3, hi=10,
+                             doc="movers: frames in a row a track is seen in before its "
+                                 "motion is judged (a line is fitted through its centres)")
+    movers_max_rms_m: float = _f(0.08, lo=0.0, hi=5.0,
+                                 doc="movers: the centres stray from a straight line at "
+                                     "constant speed by at most this (rms): a thing that "
+                                     "walks does not hop between stubble tufts")
     movers_min_mps: float = _f(0.5, lo=0.0, hi=50.0,
                                doc="movers: slower over ground than this is not a mover")
-    movers_min_hits: int = _f(5, lo=1, hi=100,
-                              doc="movers: frames a track is seen in before its velocity is used")
+    movers_max_mps: float = _f(5.0, lo=0.0, hi=50.0,
+                               doc="movers: faster than this is not a walker (a laser scan "
+                                   "line sweeping the stubble as the vehicle pitches)")
+    movers_max_size_m: float = _f(2.5, lo=0.1, hi=50.0,
+                                  doc="movers: a candidate longer or wider than this is not one "
+                                      "walker (clusters of stubble hits joined)")
     movers_horizon_s: float = _f(0.0, lo=0.0, hi=10.0,
                                  doc="movers: how far ahead a meeting is looked for (0 = the "
                                      "time the vehicle needs to come to rest from its present "

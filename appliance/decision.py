@@ -254,8 +254,11 @@ class DecisionCore:
         """``[tracking] movers``: the cells' verdict, and a STOP for a mover that meets the
         vehicle within the horizon if both go on as they are (a SLOW within twice it).
 
-        A mover: a confirmed track seen this cycle, in ``movers_min_hits`` frames at least,
-        moving over ground at ``movers_min_mps`` or more. It meets the vehicle when, moved on
+        A mover: a confirmed track seen this cycle and in the ``movers_min_run`` frames before
+        it, no larger than ``movers_max_size_m``, whose centres lie on a straight line at
+        constant speed (rms ``movers_max_rms_m``; :meth:`Tracker.motion_fit`) between
+        ``movers_min_mps`` and ``movers_max_mps`` over ground; that fitted velocity is the one
+        it is moved on with (the Kalman filter's lags, and reads speed into stubble). It meets the vehicle when, moved on
         at its velocity relative to the vehicle (its own over ground less the vehicle's,
         straight ahead), any part of its footprint comes within the vehicle's path width
         (``[zones] half_width_m``) between ``movers_body_m`` behind the front and the front:
@@ -264,12 +267,20 @@ class DecisionCore:
         that crosses well ahead of the vehicle, or behind it, does not meet it. The cells'
         STOP wins (it names what it stops for); a mover's STOP wins over the cells' SLOW."""
         tc, z = self.cfg.tracking, self.cfg.zones
-        occ = self.grid.occupied_mask() if tc.input == "occupied" else None
+        occ = self.grid.occupied_mask() if tc.movers_input == "occupied" else None
         speed = pic.speed_mps
         tracks = self.movers.update(detections, vehicle, now_ns, occ, None)
-        movers = [t for t in tracks if t.confirmed and not t.coasting
-                  and t.hits >= tc.movers_min_hits
-                  and math.hypot(t.vx_mps, t.vy_mps) >= tc.movers_min_mps]
+        movers = []                                  # (track, fitted vx, vy)
+        for t in tracks:
+            if not t.confirmed or t.coasting or max(t.length_m, t.width_m) > tc.movers_max_size_m:
+                continue
+            tr = self.movers.track(t.id)
+            if tr is None or tr.run < tc.movers_min_run:
+                continue
+            vx, vy, rms, _, n = self.movers.motion_fit(tr)
+            if n >= tc.movers_min_run and rms <= tc.movers_max_rms_m and \
+                    tc.movers_min_mps <= math.hypot(vx, vy) <= tc.movers_max_mps:
+                movers.append(replace(t, vx_mps=vx, vy_mps=vy))
         if not movers:
             return pic if not pic.tracks else replace(pic, tracks=[])
         horizon = tc.movers_horizon_s or (z.reaction_time_s + max(0.0, speed) / z.decel_mps2
@@ -292,7 +303,7 @@ class DecisionCore:
         nearest = ahead if v.nearest_m is None else min(v.nearest_m, ahead)
         what = (f"moving obstacle track {t.id} ({'+'.join(t.sources) or '?'}) {ahead:.1f} m "
                 f"ahead, {t.y_m:+.1f} m aside, moving {math.hypot(t.vx_mps, t.vy_mps):.1f} m/s"
-                f": meets the vehicle in {t_meet:.1f} s")
+                f": meets the vehicle in {t_meet:.1f} s (stop zone {v.stop_len_m:.1f} m)")
         ids = tuple(m.id for _, m in first)
         if t_meet <= horizon + 1e-9:
             v = replace(v, in_stop=len([1 for a, _ in first if a <= horizon + 1e-9]),

@@ -40,6 +40,7 @@ Pure code: arrays in, tracks out; no I/O.
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 
 import cv2
@@ -335,6 +336,11 @@ class Track:
     confidence_in: float = 0.0    # the newest candidate's confidence
     pipelines: tuple[str, ...] = ()
     strength_in: dict = field(default_factory=dict)   # the newest candidate's, per source
+    run: int = 1                  # frames in a row with a hit (0 after a miss)
+    # the last measured centres (world frame) with their stamps: (ns, x, y), newest last
+    seen_at: deque = field(default_factory=lambda: deque(maxlen=Track.SEEN_AT_MAX))
+
+    SEEN_AT_MAX = 10
 
     @property
     def logodds(self) -> float:
@@ -457,6 +463,7 @@ class Tracker:
                   length_m=m.length_m, width_m=m.width_m, height_m=m.height_m,
                   born_ns=now_ns, last_hit_ns=now_ns)
         self._next_id += 1
+        t.seen_at.append((now_ns, float(z[0]), float(z[1])))
         self._observe(t, m)
         return t
 
@@ -567,6 +574,7 @@ class Tracker:
             j = matched_t.get(i)
             if j is None:
                 t.misses += 1
+                t.run = 0
                 self._miss(t)
                 continue
             m = ms[j]
@@ -576,6 +584,8 @@ class Tracker:
             t.width_m = (1 - a) * t.width_m + a * m.width_m
             t.height_m = max(m.height_m, 0.8 * t.height_m)
             t.hits += 1
+            t.run += 1
+            t.seen_at.append((now_ns, float(zs[j][0]), float(zs[j][1])))
             t.misses = 0
             t.last_hit_ns = now_ns
             self._observe(t, m)
@@ -611,6 +621,32 @@ class Tracker:
             keep = keep[:c.max_tracks]
         self.tracks = keep
         return self.views()
+
+    def motion_fit(self, t: Track) -> tuple[float, float, float, float, int]:
+        """A straight line at constant speed through the track's last measured centres of its
+        present run of hits (world frame): (vx, vy, rms of the residuals in m, span in s, n).
+        A thing that walks fits it to a few centimetres; a track that hops between stubble
+        tufts, or whose candidate's extent jumps, does not. Fewer than 3 centres: zeros."""
+        pts = list(t.seen_at)[-max(0, t.run):] if t.run else []
+        n = len(pts)
+        if n < 3:
+            return 0.0, 0.0, 0.0, 0.0, n
+        a = np.array(pts, dtype=np.float64)
+        ts = (a[:, 0] - a[-1, 0]) / 1e9
+        tm = ts - ts.mean()
+        den = float((tm * tm).sum())
+        if den <= 0:
+            return 0.0, 0.0, 0.0, 0.0, n
+        vx = float((tm * (a[:, 1] - a[:, 1].mean())).sum() / den)
+        vy = float((tm * (a[:, 2] - a[:, 2].mean())).sum() / den)
+        rx = a[:, 1] - (a[:, 1].mean() + vx * tm)
+        ry = a[:, 2] - (a[:, 2].mean() + vy * tm)
+        rms = float(np.sqrt(np.mean(rx * rx + ry * ry)))
+        v = self.rotate_to_vehicle(np.array([vx, vy]))
+        return float(v[0]), float(v[1]), rms, float(ts[-1] - ts[0]), n
+
+    def track(self, track_id: int) -> Track | None:
+        return next((t for t in self.tracks if t.id == track_id), None)
 
     def views(self, confirmed_only: bool = False) -> list[TrackView]:
         out = []

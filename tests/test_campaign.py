@@ -301,3 +301,28 @@ def test_a_greenhouse_drive_runs_the_zones_run_sim_greenhouse_runs():
                                                SCENE_ZONES["greenhouse"]["half_width_m"])
     st = parse_config(drive_config_data("stubble-coverage", 1), "drive").zones
     assert st.half_width_m == 1.25 and st.front_x_m == 2.2
+
+
+def test_a_stop_for_a_walker_about_to_meet_the_vehicle_is_scored_true():
+    """campaign_drive.meets_vehicle: the scorer's truth for a STOP made for a walker before it
+    is in the stop zone ([tracking] movers). Vehicle at 2.5 m/s (rest 1.75 s + 0.5 s away),
+    body from 0.4 m behind its origin to the front (2.6 m) + 0.5 m, |y| <= 1.25 + 0.2 m."""
+    import numpy as np
+
+    from appliance.campaign_drive import meets_vehicle
+    from appliance.config import ZonesConfig
+    z = ZonesConfig(front_x_m=2.6)
+
+    def person(x, y):
+        return np.array([[x + a, y + b] for a in (-0.15, 0.15) for b in (-0.22, 0.22)])
+    # training seed 15's person: 3.3 m ahead of the front, 4.1 m to the right, walking in
+    assert meets_vehicle(person(5.9, -4.1), (0.53, 1.18), 2.5, z, 0.4, 0.5, 0.2)
+    # the same person walking away, or standing, or the vehicle standing (it walks past ahead)
+    assert not meets_vehicle(person(5.9, -4.1), (0.53, -1.18), 2.5, z, 0.4, 0.5, 0.2)
+    assert not meets_vehicle(person(5.9, -4.1), (0.0, 0.0), 2.5, z, 0.4, 0.5, 0.2)
+    assert not meets_vehicle(person(5.9, -4.1), (0.53, 1.18), 0.0, z, 0.4, 0.5, 0.2)
+    # crossing 17 m ahead: gone before the vehicle gets there
+    assert not meets_vehicle(person(19.6, -3.0), (0.0, 1.5), 2.5, z, 0.4, 0.5, 0.2)
+    # too far aside to get there in time (2.25 s at 1.2 m/s: 2.7 m)
+    assert not meets_vehicle(person(4.0, -4.5), (0.0, 1.2), 2.5, z, 0.4, 0.5, 0.2)
+    assert meets_vehicle(person(4.0, -3.5), (0.0, 1.2), 2.5, z, 0.4, 0.5, 0.2)

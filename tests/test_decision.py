@@ -644,7 +644,7 @@ def test_movers_do_not_stop_for_a_walker_crossing_well_ahead_or_walking_alongsid
 
 
 def test_movers_wait_for_a_velocity_seen_over_frames_and_keep_the_cells_stop():
-    """A mover needs movers_min_hits frames before it is predicted; once it is in the stop
+    """A mover needs movers_min_run frames in a row before it is predicted; once in the stop
     zone the STOP is the cells' (their reason), movers on or not. Open loop at 2.5 m/s: a
     person first seen already walking in at 1.3 m/s from 3 m to the right, 6 m ahead."""
     cfg = _movers_cfg(True)
@@ -659,7 +659,7 @@ def test_movers_wait_for_a_velocity_seen_over_frames_and_keep_the_cells_stop():
         verdicts.append(pic.verdict)
     moving = [k for k, v in enumerate(verdicts)
               if v.in_stop and v.stop_reason and "moving obstacle" in v.stop_reason]
-    assert moving and moving[0] >= cfg.tracking.movers_min_hits - 1, moving
+    assert moving and moving[0] >= cfg.tracking.movers_min_run - 1, moving
     cells = [k for k, v in enumerate(verdicts) if v.in_stop and v.stop_reason is None]
     assert cells and cells[0] > moving[0]        # the cells see it only once it is there
     assert all(k in moving or k in cells for k in range(moving[0], 20))   # held throughout

@@ -198,3 +198,30 @@ def test_a_track_the_laser_and_stereo_both_saw_can_be_held_longer_unseen():
     alone = [{"stereo": blob(8.0, 0.0)} for _ in range(6)]
     views = run(Tracker(cfg), alone + [{} for _ in range(12)])
     assert not any(v.confirmed for v in views[11])
+
+
+def test_motion_fit_a_walker_fits_a_line_a_hopping_track_does_not():
+    """Tracker.motion_fit (the movers' test, docs/tracking.md 'Movers'): the centres of the
+    present run of hits, a straight line at constant speed. A walker at (0.5, 1.2) m/s fits it
+    to the grid's rounding; a track that hops between two tufts 0.4 m apart does not; a miss
+    ends the run, and fewer than 3 centres fit nothing."""
+    tr = Tracker(TrackingConfig(laser_fast=True), GridConfig())
+    for k in range(8):
+        tr.update({"laser": Detections(points_xy=blob(6.0 + 0.05 * k, -3.0 + 0.12 * k))},
+                  vs(0.0), k * DT)
+    (t,) = tr.tracks
+    vx, vy, rms, span, n = tr.motion_fit(t)
+    assert n == 8 and t.run == 8 and span == pytest.approx(0.7)
+    assert vx == pytest.approx(0.5, abs=0.1) and vy == pytest.approx(1.2, abs=0.1)
+    assert rms < 0.04
+    tr.update({}, vs(0.0), 8 * DT)                      # a miss: the run starts again
+    assert t.run == 0 and tr.motion_fit(t)[4] == 0
+    hop = Tracker(TrackingConfig(laser_fast=True), GridConfig())
+    for k in range(8):
+        hop.update({"laser": Detections(points_xy=blob(6.0, -3.0 + 0.4 * (k % 2)))},
+                   vs(0.0), k * DT)
+    (h,) = hop.tracks
+    assert h.run == 8 and hop.motion_fit(h)[2] > 0.15
+    few = Tracker(TrackingConfig(), GridConfig())
+    few.update({"laser": Detections(points_xy=blob(6.0, 0.0))}, vs(0.0), 0)
+    assert few.motion_fit(few.tracks[0]) == (0.0, 0.0, 0.0, 0.0, 1)
