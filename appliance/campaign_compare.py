@@ -11,7 +11,9 @@ paired here and reported beside the totals:
 * **the first difference** of each drive: where the two boxes first parted, what each said,
   and the simulator's truth there (the nearest real obstacle ahead in the path against the
   zones). The more cautious box (STOP > SLOW > CLEAR) was *right* when a real obstacle was
-  within the zones, a *phantom* when nothing real was. Before that cycle the drives are equal,
+  within the zones, or a walker was about to meet the vehicle (cycles.csv ``real_meets``:
+  going on as it was, within twice the time the vehicle needs to come to rest + 0.5 s), a
+  *phantom* when nothing real was. Before that cycle the drives are equal,
   so this is the one clean, like-for-like difference a drive gives;
 * **per-drive differences** of false stops and collisions, with an exact two-sided sign test
   over the drives that differ (ties dropped).
@@ -103,8 +105,11 @@ def first_difference(rows_a: list[dict], rows_b: list[dict], reach_extra_m: floa
         reach = zone + reach_extra_m
         judgement = ("right" if near is not None and near <= reach else
                      "early" if near is not None and near <= reach + early_m else "phantom")
+        if ra.get("real_meets"):     # a walker about to meet the vehicle (campaign_drive)
+            judgement = "right"
         cautious = "a" if RANK.get(ra.get("state"), 2) > RANK.get(rb.get("state"), 2) else "b"
         out.update(real_nearest_m=near, real_obstacle=ra.get("real_obstacle", ""),
+                   real_meets=ra.get("real_meets") or "",
                    stop_zone_m=zone, cautious=cautious, judgement=judgement)
         return out
     if len(rows_a) != len(rows_b):
@@ -224,6 +229,8 @@ def _first_text(f: dict | None) -> str:
     near = f.get("real_nearest_m")
     truth = ("nothing real ahead" if near is None else
              f"real {f.get('real_obstacle') or 'obstacle'} {near:.1f} m, zone {f['stop_zone_m']:.1f} m")
+    if f.get("real_meets"):
+        truth += f"; walking in to meet the vehicle: {f['real_meets']}"
     who = f["cautious"].upper()
     verdict = {"right": "right", "early": "early", "phantom": "a phantom"}[f["judgement"]]
     return f"{head}; {truth}: {who}'s caution {verdict}"

@@ -48,7 +48,7 @@ DEFAULT_PIPELINES = {"stubble-coverage": ("stereo-novelty",),
                      "stubble-coverage-night": ("stereo-novelty",),
                      "greenhouse-coverage": ("rgbd",)}
 ROW_FIELDS = ("t_s", "x_m", "y_m", "yaw_deg", "speed_mps", "state", "reason", "nearest_m",
-              "stop_zone_m", "cells", "real_nearest_m", "real_obstacle", "place",
+              "stop_zone_m", "cells", "real_nearest_m", "real_obstacle", "real_meets", "place",
               "collisions", "stops_true", "stops_false", "missed_stops", "detours", "overrides",
               "model_samples", "acquire_ms", "perception_ms", "fusion_ms", "gate_ms", "send_ms",
               "render_cpu_ms", "pipeline_cpu_ms")
@@ -152,16 +152,17 @@ def start_sim_daemon(data: dict, source: str):
 
 
 def meets_vehicle(p: np.ndarray, v_xy, speed_mps: float, z, rear_m: float,
-                  zone_tol_m: float, lateral_tol_m: float) -> bool:
+                  zone_tol_m: float, lateral_tol_m: float, horizon_scale: float = 1.0) -> bool:
     """The scorer's test for a walker (footprint points ``p`` in the level vehicle frame,
     velocity over ground ``v_xy`` in the vehicle's axes): going on at that velocity while the
     vehicle drives on straight at ``speed_mps``, does any of it come within the zones' width +
     ``lateral_tol_m`` between the vehicle's rear (``rear_m`` behind its origin) and the front
     + ``zone_tol_m``, before the vehicle could come to rest if it braked now ([zones]
-    reaction_time_s + speed / decel_mps2) + 0.5 s? Pure."""
+    reaction_time_s + speed / decel_mps2) + 0.5 s (times ``horizon_scale``: 2 is the
+    movers' SLOW reach)? Pure."""
     speed = max(0.0, float(speed_mps))
     rel = np.array([float(v_xy[0]) - speed, float(v_xy[1])])
-    horizon = z.reaction_time_s + speed / z.decel_mps2 + 0.5
+    horizon = (z.reaction_time_s + speed / z.decel_mps2 + 0.5) * horizon_scale
     steps = np.arange(0.0, horizon + 1e-9, 0.1)
     q = np.asarray(p, np.float64).reshape(-1, 2)[None] + steps[:, None, None] * rel[None, None]
     inside = ((q[..., 0] >= -rear_m) & (q[..., 0] <= z.front_x_m + zone_tol_m) &
@@ -292,13 +293,15 @@ class Drive:
             out.append({"k": k, "id": o.id, "cls": o.cls, "ahead": ahead, "pts": p,
                         "d_zone": float(np.hypot(dx, dy).min()),
                         "meets": self._meets(o, p, rear, curvature_1pm),
+                        "meets_slow": self._meets(o, p, rear, curvature_1pm, 2.0),
                         "in_stop": ahead <= stop_len_m + self.zone_tol_m,
                         "in_slow": stop_len_m + self.zone_tol_m < ahead
                         <= stop_len_m + z.slow_extra_m + self.zone_tol_m,
                         "deep": bool(deep.any())})
         return out
 
-    def _meets(self, o, p: np.ndarray, rear: float, curvature_1pm: float) -> bool:
+    def _meets(self, o, p: np.ndarray, rear: float, curvature_1pm: float,
+               horizon_scale: float = 1.0) -> bool:
         """A walker walking now that, going on at its true velocity while the vehicle drives
         on at its speed, meets the vehicle (within the zones' width + lateral_tol_m, from its
         rear to the front + zone_tol_m) before the vehicle could come to rest if it braked now
@@ -314,7 +317,7 @@ class Drive:
         _, _, yaw = self.vehicle.pose()
         c, s_ = math.cos(yaw), math.sin(yaw)
         return meets_vehicle(p, (vx * c + vy * s_, -vx * s_ + vy * c), speed, self.zones, rear,
-                             self.zone_tol_m, self.lateral_tol_m)
+                             self.zone_tol_m, self.lateral_tol_m, horizon_scale)
 
     def _held(self, cells: np.ndarray, pts: np.ndarray) -> bool:
         """Do the box's occupied cells lie on this footprint (within hold_m)?"""
@@ -469,6 +472,10 @@ class Drive:
                 else round(nearest_real, 2),
                 "real_obstacle": "" if nr is None or not math.isfinite(nr["ahead"])
                 else f"{nr['id']}/{nr['cls']}",
+                # a walker that meets the vehicle within twice the time to rest + 0.5 s if
+                # both go on (the movers' SLOW reach): caution for it is right
+                "real_meets": " ".join(f"{o['id']}/{o['cls']}" for o in truth
+                                       if o["meets_slow"]),
                 "place": place, "collisions": v.collisions, "stops_true": self.counts["true"],
                 "stops_false": self.counts["false"], "missed_stops": self.missed,
                 "detours": v.detours, "overrides": v.overrides,

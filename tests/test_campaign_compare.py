@@ -9,7 +9,8 @@ import math
 import pytest
 
 from appliance.campaign import Campaign
-from appliance.campaign_compare import CompareError, compare, first_difference, sign_test
+from appliance.campaign_compare import (CompareError, _first_text, compare, first_difference,
+                                        sign_test)
 from appliance.cli import main
 
 # the paper's laser stops at the first return in the stop zone, a stubble tuft's top included;
@@ -112,6 +113,13 @@ def test_first_difference_judges_caution_against_the_truth():
     moved2 = [dict(r) for r in moved]
     moved2[1]["x_m"] = "9.99"
     assert first_difference(moved, moved2, 3.0)["cautious"] is None
+    # nothing ahead in the path, but a walker about to walk into the vehicle: caution is right
+    walk_a, walk_b = _rows(["CLEAR", "STOP"]), _rows(["CLEAR", "CLEAR"])
+    for r in walk_a + walk_b:
+        r["real_meets"] = "w2/person"
+    walker = first_difference(walk_a, walk_b, 3.0)
+    assert walker["judgement"] == "right" and walker["real_meets"] == "w2/person"
+    assert "walking in to meet the vehicle: w2/person" in _first_text(walker)
 
 
 def test_sign_test_is_the_exact_binomial():
