@@ -105,11 +105,14 @@ def first_difference(rows_a: list[dict], rows_b: list[dict], reach_extra_m: floa
         reach = zone + reach_extra_m
         judgement = ("right" if near is not None and near <= reach else
                      "early" if near is not None and near <= reach + early_m else "phantom")
-        if ra.get("real_meets"):     # a walker about to meet the vehicle (campaign_drive)
+        # a walker about to meet the vehicle (campaign_drive; the drives' truth is the same
+        # here, so either record that has the column says it)
+        meets = ra.get("real_meets") or rb.get("real_meets") or ""
+        if meets:
             judgement = "right"
         cautious = "a" if RANK.get(ra.get("state"), 2) > RANK.get(rb.get("state"), 2) else "b"
         out.update(real_nearest_m=near, real_obstacle=ra.get("real_obstacle", ""),
-                   real_meets=ra.get("real_meets") or "",
+                   real_meets=meets,
                    stop_zone_m=zone, cautious=cautious, judgement=judgement)
         return out
     if len(rows_a) != len(rows_b):
