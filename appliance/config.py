@@ -191,6 +191,11 @@ class TrackingConfig:
     movers_max_size_m: float = _f(2.5, lo=0.1, hi=50.0,
                                   doc="movers: a candidate longer or wider than this is not one "
                                       "walker (clusters of stubble hits joined)")
+    movers_range_m: float = _f(15.0, lo=1.0, hi=100.0,
+                               doc="movers: only what is within this of the front, ahead and "
+                                   "to either side, is tracked for them (a walker farther away "
+                                   "cannot meet the vehicle within twice the horizon at field "
+                                   "speeds; the far stubble hits cost time)")
     movers_horizon_s: float = _f(0.0, lo=0.0, hi=10.0,
                                  doc="movers: how far ahead a meeting is looked for (0 = the "
                                      "time the vehicle needs to come to rest from its present "

@@ -249,6 +249,27 @@ class DecisionCore:
 
     MOVER_STEP_S = 0.1            # movers: the meeting is looked for at these steps
 
+    def _near_front(self, detections: dict[str, Detections], range_m: float,
+                    behind_m: float) -> dict[str, Detections]:
+        """The detections within ``range_m`` ahead of the front and to either side, and up to
+        ``behind_m`` behind the front (the movers' tracker needs no more)."""
+        f = self.cfg.zones.front_x_m
+        out = {}
+        for name, d in detections.items():
+            if d is None:
+                continue
+            xy = np.asarray(d.points_xy, np.float64).reshape(-1, 2)
+            keep = ((xy[:, 0] >= f - behind_m) & (xy[:, 0] <= f + range_m) &
+                    (np.abs(xy[:, 1]) <= range_m))
+            cands = tuple(c for c in d.candidates
+                          if f - behind_m <= c.x_m <= f + range_m and abs(c.y_m) <= range_m)
+            if keep.all() and len(cands) == len(d.candidates):
+                out[name] = d
+                continue
+            out[name] = replace(d, points_xy=d.points_xy[keep], candidates=cands,
+                                points_z=None if d.points_z is None else d.points_z[keep])
+        return out
+
     def _with_movers(self, pic: Picture, detections: dict[str, Detections],
                      vehicle: VehicleState | None, now_ns: int) -> Picture:
         """``[tracking] movers``: the cells' verdict, and a STOP for a mover that meets the
@@ -269,7 +290,9 @@ class DecisionCore:
         tc, z = self.cfg.tracking, self.cfg.zones
         occ = self.grid.occupied_mask() if tc.movers_input == "occupied" else None
         speed = pic.speed_mps
-        tracks = self.movers.update(detections, vehicle, now_ns, occ, None)
+        tracks = self.movers.update(self._near_front(detections, tc.movers_range_m,
+                                                     tc.movers_body_m + 1.0),
+                                    vehicle, now_ns, occ, None)
         movers = []                                  # (track, fitted vx, vy)
         for t in tracks:
             if not t.confirmed or t.coasting or max(t.length_m, t.width_m) > tc.movers_max_size_m:

@@ -8,7 +8,7 @@ obstacle's distance from the track's centre, whether it is a walker walking now)
 whether the movers' rule as configured would have stopped for it.
 
     python tools/movers_probe.py stubble-crossing 1,2 --minutes 4 --out /tmp/probe.jsonl \
-        [--config extra.toml]
+        [--config extra.toml] [--shadow-range 100]
 
 Then ``--summary /tmp/probe.jsonl`` prints, for tracks on a real walker (within 1 m) and for
 the rest, how the features are spread: the numbers to set the movers' thresholds on (training
@@ -17,9 +17,11 @@ seeds only: the acceptance seeds >= 1000 are never probed).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
+import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
@@ -29,7 +31,8 @@ import numpy as np  # noqa: E402
 BOX = {"perception": {"pipelines": ["stereo-novelty", "laser"]}, "tracking": {"movers": True}}
 
 
-def probe(kind: str, seed: int, minutes: float, extra: dict | None, out) -> int:
+def probe(kind: str, seed: int, minutes: float, extra: dict | None, out,
+          shadow_cfg=None) -> int:
     from appliance.campaign import make_spec
     from appliance.campaign_drive import Drive, deep_merge
     from appliance.decision import DecisionCore
@@ -39,9 +42,23 @@ def probe(kind: str, seed: int, minutes: float, extra: dict | None, out) -> int:
     core = d.daemon.loop.core
     orig = DecisionCore._with_movers
     n = [0]
+    shadow = None
+    if shadow_cfg is not None:        # the same rule under another config, on the same input
+        shadow = DecisionCore(shadow_cfg(core.cfg))
+    cost = {"movers_ms": [], "shadow_ms": [], "differ": 0, "cycles": 0}
 
     def observe(pic, detections, vehicle, now_ns):
+        c0 = time.thread_time()
         applied = orig(core, pic, detections, vehicle, now_ns)
+        cost["movers_ms"].append((time.thread_time() - c0) * 1e3)
+        if shadow is not None:
+            c0 = time.thread_time()
+            other = orig(shadow, pic, detections, vehicle, now_ns)
+            cost["shadow_ms"].append((time.thread_time() - c0) * 1e3)
+            cost["cycles"] += 1
+            if (other.verdict.in_stop > 0) != (applied.verdict.in_stop > 0) or \
+                    (other.verdict.in_slow > 0) != (applied.verdict.in_slow > 0):
+                cost["differ"] += 1
         would = applied.verdict.in_stop > pic.verdict.in_stop
         tr = core.movers
         x, y, yaw = d.vehicle.pose()
@@ -75,6 +92,13 @@ def probe(kind: str, seed: int, minutes: float, extra: dict | None, out) -> int:
 
     core._with_movers = observe
     d.run()
+    for k in ("movers_ms", "shadow_ms"):
+        a = np.array(cost[k]) if cost[k] else np.zeros(1)
+        print(f"{kind} {seed}: {k} p50 {np.percentile(a, 50):.2f} p99 {np.percentile(a, 99):.2f}"
+              f" max {a.max():.2f}", flush=True)
+    if shadow is not None:
+        print(f"{kind} {seed}: the shadow config's verdict (stop / slow) differs in "
+              f"{cost['differ']} of {cost['cycles']} cycles", flush=True)
     return n[0]
 
 
@@ -111,6 +135,10 @@ def main(argv=None) -> int:
     ap.add_argument("--config", default=None)
     ap.add_argument("--out", default=None)
     ap.add_argument("--summary", default=None, help="summarise a probe's JSONL")
+    ap.add_argument("--shadow-range", type=float, default=None,
+                    help="also run the movers' rule with [tracking] movers_range_m = this on "
+                         "the same input, timing both and counting the cycles their stop/slow "
+                         "verdicts differ in")
     a = ap.parse_args(argv)
     if a.summary:
         summary(a.summary)
@@ -124,7 +152,12 @@ def main(argv=None) -> int:
     extra = load_extra_config(a.config) if a.config else None
     with open(a.out, "w") as out:
         for s in seeds:
-            k = probe(a.kind, s, a.minutes, extra, out)
+            sh = None
+            if a.shadow_range is not None:
+                def sh(cfg, r=a.shadow_range):
+                    return dataclasses.replace(cfg, tracking=dataclasses.replace(
+                        cfg.tracking, movers_range_m=r))
+            k = probe(a.kind, s, a.minutes, extra, out, sh)
             print(f"{a.kind} {s}: {k} records", flush=True)
     summary(a.out)
     return 0
