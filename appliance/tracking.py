@@ -197,6 +197,19 @@ def cluster_points(points: dict[str, tuple[np.ndarray, tuple[str, ...]]], grid: 
     return out
 
 
+_OFF = 1 << 20                     # cell indices -2^20 .. 2^20 (100 km at 0.1 m)
+
+
+def _unique_cells(points_xy: np.ndarray, cell_m: float) -> np.ndarray:
+    """The centres of the cells the points fall in, each once, sorted by x then y: what
+    ``np.unique(centres, axis=0)`` gives, from one integer key per cell (np.unique on rows
+    cost ~0.1 ms a candidate, 2-3 ms a cycle for the movers' tracker)."""
+    ij = np.floor(np.asarray(points_xy, np.float64) / cell_m).astype(np.int64) + _OFF
+    key = np.unique((ij[:, 0] << 21) | ij[:, 1])
+    i, j = (key >> 21) - _OFF, (key & ((1 << 21) - 1)) - _OFF
+    return (np.stack([i, j], axis=1).astype(np.float64) + 0.5) * cell_m
+
+
 def from_candidate(c: Candidate, cell_m: float, points_xy: np.ndarray | None = None
                    ) -> Measurement | None:
     """A front end's candidate as a measurement. ``points_xy``: the pipeline's points (only
@@ -215,7 +228,7 @@ def from_candidate(c: Candidate, cell_m: float, points_xy: np.ndarray | None = N
                   & (p[:, 1] <= y1 + h))
         if not inside.any():
             return None
-        cells = np.unique((np.floor(p[inside] / cell_m) + 0.5) * cell_m, axis=0)
+        cells = _unique_cells(p[inside], cell_m)
     return Measurement(x_m=float(c.x_m), y_m=float(c.y_m), length_m=float(max(c.length_m, cell_m)),
                        width_m=float(max(c.width_m, cell_m)), height_m=float(c.height_m),
                        points=int(c.points), confidence=conf,

@@ -225,3 +225,16 @@ def test_motion_fit_a_walker_fits_a_line_a_hopping_track_does_not():
     few = Tracker(TrackingConfig(), GridConfig())
     few.update({"laser": Detections(points_xy=blob(6.0, 0.0))}, vs(0.0), 0)
     assert few.motion_fit(few.tracks[0]) == (0.0, 0.0, 0.0, 0.0, 1)
+
+
+def test_unique_cells_is_np_unique_on_the_cell_centres():
+    """tracking._unique_cells (the fast path of a candidate's cells) gives exactly what
+    np.unique(centres, axis=0) gave, negative coordinates and duplicates included."""
+    from appliance.tracking import _unique_cells
+    rng = np.random.default_rng(4)
+    pts = np.r_[rng.uniform(-30, 30, (500, 2)), rng.uniform(-0.3, 0.3, (200, 2))]
+    for cell in (0.1, 0.25):
+        want = np.unique((np.floor(pts / cell) + 0.5) * cell, axis=0)
+        got = _unique_cells(pts, cell)
+        assert got.shape == want.shape and np.allclose(got, want, atol=1e-9)
+    assert _unique_cells(np.zeros((0, 2)), 0.1).shape == (0, 2)
