@@ -663,3 +663,36 @@ def test_movers_wait_for_a_velocity_seen_over_frames_and_keep_the_cells_stop():
     cells = [k for k, v in enumerate(verdicts) if v.in_stop and v.stop_reason is None]
     assert cells and cells[0] > moving[0]        # the cells see it only once it is there
     assert all(k in moving or k in cells for k in range(moving[0], 20))   # held throughout
+
+
+def test_the_loop_with_movers_keeps_a_standing_vehicle_from_a_person_walking_into_its_side():
+    """The loop with the real laser pipeline and [tracking] movers: the vehicle stands (the
+    zones' front 2.6 m), a person (the laser's 0.3 m at 0.7 m) walks at 1.3 m/s from 3 m to
+    the right towards the vehicle's side just behind the front. The stop zone is ahead of the
+    front, so the cells never stop; the movers do (before it arrives: the horizon at standstill
+    is reaction_time_s + 0.5 s), name it, and status says so."""
+    for movers in (False, True):
+        cfg = Config(gate=GateConfig(hold_off_s=0.3), tracking=TrackingConfig(movers=movers))
+        clock, loop, laser, link = make_loop(cfg)
+        for _ in range(6):
+            loop.cycle()
+            clock.advance(DT)
+        assert loop.gate.state is GateState.CLEAR
+        first = None
+        for k in range(14):
+            y = -3.0 + 0.13 * k
+            laser.put_obstacle(2.4, y)
+            out = loop.cycle().output
+            clock.advance(DT)
+            if out.state is GateState.STOP and first is None:
+                first = (k, y, out.reason)
+        st = loop.status()
+        if not movers:
+            assert first is None and st["obstacles"]["decision"] == "cells"
+            continue
+        assert first is not None, "the movers did not stop"
+        k, y, reason = first
+        assert y < -1.25 - 0.15 and "moving obstacle track" in reason and "(laser)" in reason
+        assert st["obstacles"]["decision"] == "cells+movers"
+        assert st["tracks"] and st["tracks"][0]["sources"] == ["laser"]
+        assert link.sent[-1].state is GateState.STOP
