@@ -688,6 +688,19 @@ _THIN = ("stake", "child", "dog-head-on")
 _STAKE_COLOURS = [(0.25, 0.30, 0.33), (0.36, 0.37, 0.38), (0.40, 0.58, 0.72), (0.15, 0.18, 0.20)]
 
 
+def _spaced_xs(rng, n: int, lo: float, hi: float, gap_m: float, tries: int = 80) -> list:
+    """Up to ``n`` positions drawn in [lo, hi), each at least ``gap_m`` from the others (in
+    the order drawn; fewer if ``tries`` draws do not find room)."""
+    xs: list[float] = []
+    for _ in range(tries):
+        if len(xs) == n:
+            break
+        x = float(rng.uniform(lo, hi))
+        if all(abs(x - q) >= gap_m for q in xs):
+            xs.append(x)
+    return xs
+
+
 def _thin_obstacles(rng, length_m: float, passes: int, spacing_m: float,
                     headland_m: float) -> list:
     """2-4 thin, short things in the path of every lane (at least 30 m apart; none in the first
@@ -699,14 +712,7 @@ def _thin_obstacles(rng, length_m: float, passes: int, spacing_m: float,
     for p in range(passes):
         y = p * spacing_m
         lo = 60.0 if p == 0 else headland_m + 5.0
-        xs: list[float] = []
-        n = int(rng.integers(2, 5))
-        for _ in range(80):
-            if len(xs) == n:
-                break
-            x = float(rng.uniform(lo, length_m - headland_m - 5.0))
-            if all(abs(x - q) >= 30.0 for q in xs):
-                xs.append(x)
+        xs = _spaced_xs(rng, int(rng.integers(2, 5)), lo, length_m - headland_m - 5.0, 30.0)
         for x in sorted(xs):
             oid = f"t{len(obs) + 1}"
             cls = _THIN[int(rng.integers(len(_THIN)))]
@@ -743,14 +749,7 @@ def _crossing_obstacles(rng, length_m: float, spacing_m: float, passes: int, lan
         s0, _ = lanes[p]
         fwd = p % 2 == 0
         lo = 60.0 if p == 0 else headland_m + 10.0
-        xs: list[float] = []
-        n = int(rng.integers(2, 4))
-        for _ in range(80):
-            if len(xs) == n:
-                break
-            x = float(rng.uniform(lo, length_m - headland_m - 15.0))
-            if all(abs(x - q) >= 40.0 for q in xs):
-                xs.append(x)
+        xs = _spaced_xs(rng, int(rng.integers(2, 4)), lo, length_m - headland_m - 15.0, 40.0)
         for x in sorted(xs, reverse=not fwd):
             oid = f"w{len(obs) + 1}"
             o = (_person(rng, oid, x, y, "standing") if rng.uniform() < 0.6
