@@ -279,9 +279,10 @@ class DecisionCore:
         it, no larger than ``movers_max_size_m``, whose centres lie on a straight line at
         constant speed (rms ``movers_max_rms_m``; :meth:`Tracker.motion_fit`) between
         ``movers_min_mps`` and ``movers_max_mps`` over ground; that fitted velocity is the one
-        it is moved on with (the Kalman filter's lags, and reads speed into stubble). It meets the vehicle when, moved on
-        at its velocity relative to the vehicle (its own over ground less the vehicle's,
-        straight ahead), any part of its footprint comes within the vehicle's path width
+        it is moved on with (the Kalman filter's lags, and reads speed into stubble). It meets
+        the vehicle when, moved on at its velocity relative to the vehicle (its own over ground
+        less the vehicle's, straight ahead: the zones' curvature is not used here), any part
+        of its footprint comes within the vehicle's path width
         (``[zones] half_width_m``) between ``movers_body_m`` behind the front and the front:
         it walks into the front or the side. A person walking in from the side is outside the
         stop zone until it is too late to stop at cruise speed, and cells never predict; one
@@ -293,7 +294,7 @@ class DecisionCore:
         tracks = self.movers.update(self._near_front(detections, tc.movers_range_m,
                                                      tc.movers_body_m + 1.0),
                                     vehicle, now_ns, occ, None)
-        movers = []                                  # (track, fitted vx, vy)
+        movers = []                     # their views, with the fitted velocity
         for t in tracks:
             if not t.confirmed or t.coasting or max(t.length_m, t.width_m) > tc.movers_max_size_m:
                 continue
