@@ -495,6 +495,9 @@ def _cross_check(cfg: Config, file: str) -> None:
     if t.release_logodds > t.confirm_logodds:
         raise ConfigError("release_logodds must not exceed confirm_logodds", file=file,
                           key="tracking")
+    if t.movers_max_mps <= t.movers_min_mps:
+        raise ConfigError("movers_max_mps must exceed movers_min_mps (nothing would be a "
+                          "mover)", file=file, key="tracking")
     if cfg.perception.laser.max_range_m <= cfg.perception.laser.min_range_m:
         raise ConfigError("max_range_m must exceed min_range_m", file=file,
                           key="perception.laser")

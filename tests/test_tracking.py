@@ -167,6 +167,16 @@ def test_tracking_config_is_validated():
     c = parse_config({"tracking": {"enabled": True, "weights": {"novelty": 0.2}}})
     assert c.tracking.enabled and c.tracking.weights.novelty == 0.2
     assert dataclasses.replace(c.tracking, enabled=False).weights.novelty == 0.2
+    # the movers' keys: ranges, choices and the one cross-check
+    with pytest.raises(ConfigError, match=r"tracking.*movers_max_mps must exceed"):
+        parse_config({"tracking": {"movers": True, "movers_min_mps": 2.0,
+                                   "movers_max_mps": 1.0}})
+    with pytest.raises(ConfigError, match=r"tracking.movers_input"):
+        parse_config({"tracking": {"movers_input": "everything"}})
+    with pytest.raises(ConfigError, match=r"tracking.movers_min_run"):
+        parse_config({"tracking": {"movers_min_run": 2}})
+    m = parse_config({"tracking": {"movers": True, "movers_range_m": 20.0}})
+    assert m.tracking.movers and m.tracking.movers_range_m == 20.0
 
 
 def test_a_candidates_cells_are_its_points_not_its_filled_footprint():
