@@ -151,23 +151,36 @@ def start_sim_daemon(data: dict, source: str):
     return cfg, d, d.shared["sim_hub"].field
 
 
-def meets_vehicle(p: np.ndarray, v_xy, speed_mps: float, z, rear_m: float,
-                  zone_tol_m: float, lateral_tol_m: float, horizon_scale: float = 1.0) -> bool:
+def meeting_time(p: np.ndarray, v_xy, speed_mps: float, z, rear_m: float,
+                 zone_tol_m: float, lateral_tol_m: float, horizon_s: float) -> float | None:
     """The scorer's test for a walker (footprint points ``p`` in the level vehicle frame,
     velocity over ground ``v_xy`` in the vehicle's axes): going on at that velocity while the
-    vehicle drives on straight at ``speed_mps``, does any of it come within the zones' width +
-    ``lateral_tol_m`` between the vehicle's rear (``rear_m`` behind its origin) and the front
-    + ``zone_tol_m``, before the vehicle could come to rest if it braked now ([zones]
-    reaction_time_s + speed / decel_mps2) + 0.5 s (times ``horizon_scale``: 2 is the
-    movers' SLOW reach)? Pure."""
+    vehicle drives on straight at ``speed_mps``, when does any of it first come within the
+    zones' width + ``lateral_tol_m`` between the vehicle's rear (``rear_m`` behind its origin)
+    and the front + ``zone_tol_m``? Looked for in 0.1 s steps up to ``horizon_s``; None if not
+    by then. Pure."""
     speed = max(0.0, float(speed_mps))
     rel = np.array([float(v_xy[0]) - speed, float(v_xy[1])])
-    horizon = (z.reaction_time_s + speed / z.decel_mps2 + 0.5) * horizon_scale
-    steps = np.arange(0.0, horizon + 1e-9, 0.1)
+    steps = np.arange(0.0, horizon_s + 1e-9, 0.1)
     q = np.asarray(p, np.float64).reshape(-1, 2)[None] + steps[:, None, None] * rel[None, None]
     inside = ((q[..., 0] >= -rear_m) & (q[..., 0] <= z.front_x_m + zone_tol_m) &
-              (np.abs(q[..., 1]) <= z.half_width_m + lateral_tol_m))
-    return bool(inside.any())
+              (np.abs(q[..., 1]) <= z.half_width_m + lateral_tol_m)).any(axis=1)
+    return float(steps[int(np.argmax(inside))]) if inside.any() else None
+
+
+def rest_horizon_s(speed_mps: float, z) -> float:
+    """The time the vehicle needs to come to rest if it brakes now ([zones] reaction_time_s +
+    speed / decel_mps2) + 0.5 s: the reach within which a walker meeting it makes a STOP
+    right (twice it: a SLOW)."""
+    return z.reaction_time_s + max(0.0, float(speed_mps)) / z.decel_mps2 + 0.5
+
+
+def meets_vehicle(p: np.ndarray, v_xy, speed_mps: float, z, rear_m: float,
+                  zone_tol_m: float, lateral_tol_m: float, horizon_scale: float = 1.0) -> bool:
+    """Does the walker meet the vehicle (:func:`meeting_time`) within ``horizon_scale`` x
+    :func:`rest_horizon_s`?"""
+    return meeting_time(p, v_xy, speed_mps, z, rear_m, zone_tol_m, lateral_tol_m,
+                        rest_horizon_s(speed_mps, z) * horizon_scale) is not None
 
 
 def cause_of(reason: str) -> str:
@@ -292,32 +305,34 @@ class Drive:
                 (p[:, 0] <= fx + stop_len_m - self.zone_tol_m)
             out.append({"k": k, "id": o.id, "cls": o.cls, "ahead": ahead, "pts": p,
                         "d_zone": float(np.hypot(dx, dy).min()),
-                        "meets": self._meets(o, p, rear, curvature_1pm),
-                        "meets_slow": self._meets(o, p, rear, curvature_1pm, 2.0),
+                        **self._meets(o, p, rear, curvature_1pm),
                         "in_stop": ahead <= stop_len_m + self.zone_tol_m,
                         "in_slow": stop_len_m + self.zone_tol_m < ahead
                         <= stop_len_m + z.slow_extra_m + self.zone_tol_m,
                         "deep": bool(deep.any())})
         return out
 
-    def _meets(self, o, p: np.ndarray, rear: float, curvature_1pm: float,
-               horizon_scale: float = 1.0) -> bool:
-        """A walker walking now that, going on at its true velocity while the vehicle drives
-        on at its speed, meets the vehicle (within the zones' width + lateral_tol_m, from its
-        rear to the front + zone_tol_m) before the vehicle could come to rest if it braked now
-        (reaction + speed / deceleration) + 0.5 s: a STOP for it is a true stop, as for an
-        obstacle in the stop zone. (Straight ahead: in a turn, not judged.)"""
+    def _meets(self, o, p: np.ndarray, rear: float, curvature_1pm: float) -> dict:
+        """``meets`` / ``meets_slow``: a walker walking now that, going on at its true velocity
+        while the vehicle drives on at its speed, meets the vehicle (within the zones' width +
+        lateral_tol_m, from its rear to the front + zone_tol_m) within :func:`rest_horizon_s`
+        (a STOP for it is a true stop, as for an obstacle in the stop zone) / within twice it
+        (caution for it is right, cycles.csv ``real_meets``). Straight ahead: in a turn, not
+        judged."""
+        no = {"meets": False, "meets_slow": False}
         t_now = float(getattr(self.field.world, "time_s", 0.0))
         if curvature_1pm or not getattr(o, "moving", False):
-            return False
+            return no
         vx, vy = o.velocity_now(t_now)
         if vx == 0.0 and vy == 0.0:
-            return False
+            return no
         speed = max(0.0, float(self.vehicle.speed))
         _, _, yaw = self.vehicle.pose()
         c, s_ = math.cos(yaw), math.sin(yaw)
-        return meets_vehicle(p, (vx * c + vy * s_, -vx * s_ + vy * c), speed, self.zones, rear,
-                             self.zone_tol_m, self.lateral_tol_m, horizon_scale)
+        h = rest_horizon_s(speed, self.zones)
+        t = meeting_time(p, (vx * c + vy * s_, -vx * s_ + vy * c), speed, self.zones, rear,
+                         self.zone_tol_m, self.lateral_tol_m, 2.0 * h)
+        return {"meets": t is not None and t <= h + 1e-9, "meets_slow": t is not None}
 
     def _held(self, cells: np.ndarray, pts: np.ndarray) -> bool:
         """Do the box's occupied cells lie on this footprint (within hold_m)?"""

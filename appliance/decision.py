@@ -140,6 +140,11 @@ def assess_tracks(tracks: list[TrackView], cells_xy: np.ndarray, speed_mps: floa
                        curvature_1pm=float(curvature_1pm))
 
 
+def decision_name(tc) -> str:
+    """What decides, for status and the evaluator: "tracks", "cells+movers" or "cells"."""
+    return "tracks" if tc.enabled else ("cells+movers" if tc.movers else "cells")
+
+
 class DecisionCore:
     """Fusion, tracking, zones and the gate for one box (one instance per loop or per run)."""
 
@@ -295,10 +300,11 @@ class DecisionCore:
                                                      tc.movers_body_m + 1.0),
                                     vehicle, now_ns, occ, None)
         movers = []                     # their views, with the fitted velocity
+        by_id = {t.id: t for t in self.movers.tracks}
         for t in tracks:
             if not t.confirmed or t.coasting or max(t.length_m, t.width_m) > tc.movers_max_size_m:
                 continue
-            tr = self.movers.track(t.id)
+            tr = by_id.get(t.id)
             if tr is None or tr.run < tc.movers_min_run:
                 continue
             vx, vy, rms, _, n = self.movers.motion_fit(tr)
@@ -306,7 +312,7 @@ class DecisionCore:
                     tc.movers_min_mps <= math.hypot(vx, vy) <= tc.movers_max_mps:
                 movers.append(replace(t, vx_mps=vx, vy_mps=vy))
         if not movers:
-            return pic if not pic.tracks else replace(pic, tracks=[])
+            return pic
         horizon = tc.movers_horizon_s or (z.reaction_time_s + max(0.0, speed) / z.decel_mps2
                                           + 0.5)
         steps = np.arange(0.0, 2 * horizon + 1e-9, self.MOVER_STEP_S)
@@ -330,7 +336,7 @@ class DecisionCore:
                 f": meets the vehicle in {t_meet:.1f} s (stop zone {v.stop_len_m:.1f} m)")
         ids = tuple(m.id for _, m in first)
         if t_meet <= horizon + 1e-9:
-            v = replace(v, in_stop=len([1 for a, _ in first if a <= horizon + 1e-9]),
+            v = replace(v, in_stop=sum(a <= horizon + 1e-9 for a, _ in first),
                         stop_reason=what, nearest_m=nearest, track_ids=ids)
         elif not v.in_slow:
             v = replace(v, in_slow=len(first), slow_reason=what, nearest_m=nearest,

@@ -423,7 +423,7 @@ def evaluate_run(path: str | os.PathLike, pipeline: str | None = None, config=No
     import json
 
     from appliance.config import default_config, load_config
-    from appliance.decision import DecisionCore
+    from appliance.decision import DecisionCore, decision_name
     from appliance.perception import SensorInputs, make_pipeline
     from appliance.zones import zone_rects
 
@@ -530,8 +530,7 @@ def evaluate_run(path: str | os.PathLike, pipeline: str | None = None, config=No
     res = agg.result()
     res.update(stops.result())
     res.update({"run": info.name, "path": str(Path(path)), "pipeline": label,
-                "decision": ("tracks" if cfg.tracking.enabled else
-                             "cells+movers" if cfg.tracking.movers else "cells"),
+                "decision": decision_name(cfg.tracking),
                 "frames_total": n, "frames_missing_input": missing_input,
                 # frames left out of the score: a sensor file missing, or corrupt (named)
                 "frames_missing": len(lost), "frames_missing_indices": lost,

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from appliance.config import Config
-from appliance.decision import DecisionCore
+from appliance.decision import DecisionCore, decision_name
 from appliance.perception import Detections, Pipeline, SensorInputs
 from appliance.zones import ZoneVerdict
 from hal.clock import Clock
@@ -334,8 +334,7 @@ class ApplianceLoop:
                 "nearest_m": None if v is None or v.nearest_m is None else round(v.nearest_m, 2),
                 "stop_zone_m": None if v is None else round(v.stop_len_m, 2),
                 "grid_cells": int(len(self.core.last.grid_cells_xy)) if self.core.last else None,
-                "decision": ("tracks" if self.core.tracker is not None else
-                             "cells+movers" if self.core.movers is not None else "cells"),
+                "decision": decision_name(self.cfg.tracking),
             }
             # the confirmed tracks (the obstacles the box holds), nearest first
             out["tracks"] = [t.to_dict() for t in sorted(

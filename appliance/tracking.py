@@ -640,7 +640,7 @@ class Tracker:
         present run of hits (world frame): (vx, vy, rms of the residuals in m, span in s, n).
         A thing that walks fits it to a few centimetres; a track that hops between stubble
         tufts, or whose candidate's extent jumps, does not. Fewer than 3 centres: zeros."""
-        pts = list(t.seen_at)[-max(0, t.run):] if t.run else []
+        pts = list(t.seen_at)[-t.run:] if t.run > 0 else []
         n = len(pts)
         if n < 3:
             return 0.0, 0.0, 0.0, 0.0, n
@@ -657,9 +657,6 @@ class Tracker:
         rms = float(np.sqrt(np.mean(rx * rx + ry * ry)))
         v = self.rotate_to_vehicle(np.array([vx, vy]))
         return float(v[0]), float(v[1]), rms, float(ts[-1] - ts[0]), n
-
-    def track(self, track_id: int) -> Track | None:
-        return next((t for t in self.tracks if t.id == track_id), None)
 
     def views(self, confirmed_only: bool = False) -> list[TrackView]:
         out = []

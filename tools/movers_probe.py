@@ -64,8 +64,9 @@ def probe(kind: str, seed: int, minutes: float, extra: dict | None, out,
         x, y, yaw = d.vehicle.pose()
         c, s = math.cos(yaw), math.sin(yaw)
         tw = d.field.world.time_s if hasattr(d.field.world, "time_s") else 0.0
+        by_id = {t.id: t for t in tr.tracks}
         for v in tr.views(confirmed_only=True):
-            t = tr.track(v.id)
+            t = by_id.get(v.id)
             if v.coasting or t is None or t.hits < 3 or math.hypot(v.vx_mps, v.vy_mps) < 0.3:
                 continue
             fx, fy, rms, span, nfit = tr.motion_fit(t)

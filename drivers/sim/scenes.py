@@ -624,14 +624,7 @@ def _coverage_stubble_obstacles(rng, length_m: float, spacing_m: float, passes: 
         return _thing(rng, oid, x, y, things if who == "thing" else small, protos)
 
     def xs_on_lane(n, lo, hi, taken):
-        out = []
-        for _ in range(60):
-            if len(out) == n:
-                break
-            x = float(rng.uniform(lo, hi))
-            if all(abs(x - q) >= 35.0 for q in out + taken):
-                out.append(x)
-        return out
+        return _spaced_xs(rng, n, lo, hi, 35.0, tries=60, taken=taken)
 
     for p in range(passes):
         y = p * spacing_m
@@ -688,15 +681,16 @@ _THIN = ("stake", "child", "dog-head-on")
 _STAKE_COLOURS = [(0.25, 0.30, 0.33), (0.36, 0.37, 0.38), (0.40, 0.58, 0.72), (0.15, 0.18, 0.20)]
 
 
-def _spaced_xs(rng, n: int, lo: float, hi: float, gap_m: float, tries: int = 80) -> list:
-    """Up to ``n`` positions drawn in [lo, hi), each at least ``gap_m`` from the others (in
-    the order drawn; fewer if ``tries`` draws do not find room)."""
+def _spaced_xs(rng, n: int, lo: float, hi: float, gap_m: float, tries: int = 80,
+               taken=()) -> list:
+    """Up to ``n`` positions drawn in [lo, hi), each at least ``gap_m`` from the others and
+    from ``taken`` (in the order drawn; fewer if ``tries`` draws do not find room)."""
     xs: list[float] = []
     for _ in range(tries):
         if len(xs) == n:
             break
         x = float(rng.uniform(lo, hi))
-        if all(abs(x - q) >= gap_m for q in xs):
+        if all(abs(x - q) >= gap_m for q in xs) and all(abs(x - q) >= gap_m for q in taken):
             xs.append(x)
     return xs
 
