@@ -1,5 +1,6 @@
 """The daemon closed-loop on the simulated field: the vehicle obeys the box."""
 import dataclasses
+import math
 
 from appliance.config import default_config
 from appliance.daemon import Daemon, sim_config
@@ -76,6 +77,43 @@ def test_driver_takes_over_at_a_real_obstacle_and_overrides_a_false_stop():
     for _ in range(30):
         g.step(0.1, GateState.STOP)
     assert w.s > s0 and g.vehicle.collisions == 0
+
+
+def test_easing_back_after_a_detour_the_vehicle_heads_where_it_goes_and_the_gyro_sees_it():
+    """Past the obstacle the driver steers back onto the path. The vehicle must head where it
+    moves and its yaw rate must say so: it used to slide sideways with its heading held (0.3 m
+    a metre), so to the box's odometry everything still ahead seemed to move sideways at 0.3x
+    its speed (a still drum became a 0.9 m/s mover)."""
+    f = SimField("stubble-day", 0, sensors=("laser",))
+    v = f.vehicle
+    for _ in range(200):
+        f.step(0.1, f.oracle_command())
+        if v.speed == 0.0:
+            break
+    for _ in range(60):
+        f.step(0.1, GateState.STOP)
+    assert v.detours == 1 and abs(v.offset_m) > 0
+    x0, y0, yaw0 = v.pose()
+    gyro = yaw0                       # the heading the box would integrate from the yaw rate
+    eased, worst_slip, worst_gyro = 0, 0.0, 0.0
+    for _ in range(400):
+        off = v.offset_m
+        f.step(0.1, GateState.CLEAR)
+        x1, y1, yaw1 = v.pose()
+        gyro += v.yaw_rate * 0.1
+        moved = math.hypot(x1 - x0, y1 - y0)
+        if moved > 0.05:
+            course = math.atan2(y1 - y0, x1 - x0)
+            mid = math.atan2(math.sin(yaw0) + math.sin(yaw1), math.cos(yaw0) + math.cos(yaw1))
+            worst_slip = max(worst_slip, abs(math.remainder(course - mid, 2 * math.pi)))
+        worst_gyro = max(worst_gyro, abs(math.remainder(gyro - yaw1, 2 * math.pi)))
+        eased += v.offset_m != off
+        x0, y0, yaw0 = x1, y1, yaw1
+        if v.offset_m == 0.0:
+            break
+    assert v.offset_m == 0.0 and v.heading_off == 0.0 and eased > 20
+    assert worst_slip < math.radians(1.5), math.degrees(worst_slip)
+    assert worst_gyro < math.radians(1.0), math.degrees(worst_gyro)
 
 
 def test_in_a_greenhouse_lane_the_driver_clears_a_real_obstacle_and_the_drive_goes_on():

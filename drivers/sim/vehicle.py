@@ -9,7 +9,8 @@ and counts collisions.
 - Operator takeover (``detour_after_s``, stubble scenes): held at STOP for that long before a
   REAL obstacle (within ``detour_trigger_m`` of the front, from the world, not from the box),
   the driver takes over and puts the vehicle ``detour_offset_m`` to the left of its path, as if
-  he had backed up and steered round; once past, the vehicle eases back onto its path. A long
+  he had backed up and steered round; once past, the driver steers back onto the path along a
+  smooth S, heading where it goes (the gyro sees it: `_ease_back`). A long
   run can go on after a correct stop; a FALSE stop (nothing really ahead) is never taken over,
   Counted in ``stats()['detours']``. Where there is no room to steer round (a greenhouse lane,
   ``scene.clear_after_stop``) the driver instead clears the obstacle out of the way (carries
@@ -46,6 +47,8 @@ class Vehicle:
                                 else float(detour_offset_m))
         self.detour_trigger_m = float(detour_trigger_m)
         self.offset_m = 0.0            # lateral offset from the path (left positive)
+        self.heading_off = 0.0         # heading off the path's (rad, left positive): easing back
+        self._ease: list[float] | None = None   # easing back: [offset it started from, progress]
         self._detour_until_s: float | None = None
         self._held_s = 0.0
         self.detours = 0
@@ -88,6 +91,7 @@ class Vehicle:
         if self.offset_m:
             x -= self.offset_m * math.sin(yaw)
             y += self.offset_m * math.cos(yaw)
+        yaw += self.heading_off
         return x, y, math.atan2(math.sin(yaw), math.cos(yaw))
 
     def _curvature(self) -> float:
@@ -196,7 +200,7 @@ class Vehicle:
             v1 = max(target, v0 - self.decel_mps2 * dt_s)
         else:
             v1 = min(target, v0 + self.accel_mps2 * dt_s)
-        ds = 0.5 * (v0 + v1) * dt_s
+        ds = 0.5 * (v0 + v1) * dt_s * math.cos(self.heading_off)     # along the path
         self.s += ds
         if self.s >= self.path_length_m:
             self.s = self.path_length_m
@@ -205,10 +209,13 @@ class Vehicle:
         self.speed = v1
         self.distance_m += ds
         self.time_s += dt_s
-        self.yaw_rate = self.speed * self._curvature()
         if self.speed < 0.05:
             self.stopped_s += dt_s
+        heading_before = self.heading_off
         self._operator(dt_s, ds)
+        # what a gyro would read: the path's turning and the driver's steering back onto it
+        self.yaw_rate = self.speed * self._curvature() + (
+            (self.heading_off - heading_before) / dt_s if dt_s > 0 else 0.0)
         x, y, _ = self.pose()
         for k, o in enumerate(sc.world.obstacles):
             if o.id in self.obstacles_hit or math.hypot(o.x - x, o.y - y) > o.radius + 3.5:
@@ -219,16 +226,34 @@ class Vehicle:
                 self.speed = 0.0
                 self.yaw_rate = 0.0
 
+    EASE_M_PER_M = 5.0      # easing back takes 5 m of path per metre of offset (steepest 0.3)
+
+    def _ease_back(self, ds: float) -> None:
+        """Past the obstacle: steer back onto the path along a smooth S (offset ``o0 (1 -
+        3u^2 + 2u^3)`` over ``EASE_M_PER_M * |o0|`` metres of path, at most 0.3 m a metre),
+        heading along it as a steered vehicle does, so the gyro and the sensors see the turn
+        (a sideways slide with the heading held made everything still look as if it moved
+        sideways at 0.3x the vehicle's speed). Only where the way back is free: otherwise it
+        drives straight on at the offset it has."""
+        if self._ease is None:
+            self._ease = [self.offset_m, 0.0]
+        o0, u0 = self._ease
+        length = max(self.EASE_M_PER_M * abs(o0), 1e-6)
+        before = self.offset_m
+        u = min(1.0, u0 + ds / length)
+        self.offset_m = o0 * (1.0 - (3.0 * u * u - 2.0 * u ** 3))
+        self.heading_off = math.atan(-o0 * 6.0 * u * (1.0 - u) / length)
+        if self.clearance_ahead() < 2 * self.detour_trigger_m:
+            self.offset_m, u, self.heading_off = before, u0, 0.0
+        self._ease[1] = u
+        if u >= 1.0:
+            self.offset_m, self.heading_off = 0.0, 0.0
+            self._ease, self._detour_until_s = None, None
+
     def _operator(self, dt_s: float, ds: float) -> None:
         """The safety driver: steers round a real obstacle the box has (rightly) stopped for."""
         if self._detour_until_s is not None and self.s >= self._detour_until_s:
-            # past it: ease back, 0.3 m per metre, only where the way back is free
-            before = self.offset_m
-            self.offset_m = math.copysign(max(0.0, abs(before) - 0.3 * ds), before)
-            if self.clearance_ahead() < 2 * self.detour_trigger_m:
-                self.offset_m = before
-            if self.offset_m == 0.0:
-                self._detour_until_s = None
+            self._ease_back(ds)
         clear = self.scene.clear_after_stop
         if ((self.detour_offset_m <= 0 and not clear) or self.command is not GateState.STOP
                 or self.speed >= 0.05):
@@ -259,6 +284,7 @@ class Vehicle:
             if c > 3 * self.detour_trigger_m:
                 break
         self.offset_m = best
+        self.heading_off, self._ease = 0.0, None
         self._detour_until_s = self.s + ahead + self.scene.footprint[1] + 6.0
         self.detours += 1
         self._held_s = 0.0
