@@ -425,6 +425,11 @@ class Tracker:
         dth = vehicle.yaw_rate_radps * dt
         mid = th + dth / 2
         d = vehicle.speed_mps * dt
+        if not (math.isfinite(d) and math.isfinite(dth)):
+            # as the grid does (fusion.Grid._ego_motion): the links refuse non-finite values
+            # first; should one slip through, the world frame stays where it was (a NaN pose
+            # would make every track NaN, and a NaN range an exception in frames_needed)
+            return
         self.pose = np.array([x + d * math.cos(mid), y + d * math.sin(mid), th + dth])
         h = self.pose[2]
         self._vehicle_v = vehicle.speed_mps * np.array([math.cos(h), math.sin(h)])

@@ -248,3 +248,18 @@ def test_unique_cells_is_np_unique_on_the_cell_centres():
         got = _unique_cells(pts, cell)
         assert got.shape == want.shape and np.allclose(got, want, atol=1e-9)
     assert _unique_cells(np.zeros((0, 2)), 0.1).shape == (0, 2)
+
+
+def test_a_non_finite_speed_or_yaw_rate_leaves_the_world_frame_where_it_was():
+    """Defence in depth, as the grid's (tests/test_follow_turn.py): a NaN that slips past the
+    links must not make every track NaN (nor raise: with movers on by default, that would be a
+    'fusion failed' STOP every cycle it lasts). The post stays where it is, confirmed."""
+    import math
+    for bad in (dict(speed_mps=math.nan), dict(yaw_rate_radps=math.inf)):
+        tr = Tracker(TrackingConfig())
+        run(tr, [{"stereo": blob(8.0, 0.0)} for _ in range(6)])
+        dets = {"stereo": Detections(points_xy=blob(8.0, 0.0))}
+        views = tr.update(dets, VehicleState(0, 0, **{"speed_mps": 0.0, "yaw_rate_radps": 0.0,
+                                                     **bad}), 6 * DT)
+        (t,) = [v for v in views if v.confirmed]
+        assert np.isfinite(tr.pose).all() and t.x_m == pytest.approx(8.0, abs=0.1)
