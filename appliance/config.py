@@ -167,12 +167,13 @@ class TrackingConfig:
                                   "saw is held unseen this long, whatever its evidence (0 = off)")
     laser_fast: bool = _f(True, doc="a laser return cluster counts at full strength and "
                                      "confirms on the first frame it is seen")
-    movers: bool = _f(False, doc="with the cell decision (enabled = false): also track what "
-                                 "the grid holds, and STOP for a mover that, going on as it "
-                                 "does while the vehicle drives on, meets the vehicle within "
-                                 "movers_horizon_s (SLOW within twice that): a person walking "
-                                 "in from the side, outside the zones until it is too late "
-                                 "(docs/tracking.md 'Movers')")
+    movers: bool = _f(True, doc="with the cell decision (enabled = false): also track what "
+                                "the grid holds, and STOP for a mover that, going on as it "
+                                "does while the vehicle drives on, meets the vehicle within "
+                                "movers_horizon_s (SLOW within twice that): a person walking "
+                                "in from the side, outside the zones until it is too late "
+                                "(docs/tracking.md 'Movers'; the default since the "
+                                "seventeenth session, false = the cells alone)")
     movers_input: str = _f("hits", choices=("occupied", "hits"),
                            doc="movers: what their tracker clusters (a walker's cells move: "
                                "they are rarely hit twice running, so rarely 'occupied')")

@@ -21,6 +21,9 @@ def test_shipped_default_config_loads():
     from pathlib import Path
     cfg = load_config(Path(__file__).resolve().parents[1] / "deploy" / "fieldguard.toml")
     assert {d.kind for d in cfg.devices} >= {"laser", "link"}
+    # the shipped box stops for a walker about to meet it (the default since the 17th session)
+    assert cfg.tracking.movers and not cfg.tracking.enabled
+    assert default_config().tracking.movers
 
 
 def test_full_file(tmp_path):

@@ -111,7 +111,7 @@ def test_out_file_every_frame_in_order_readable_with_json_only(tmp_path):
         assert d["stop_zone"] == {"x_min_m": 2.6, "x_max_m": 4.6, "half_width_m": 1.25}
         assert d["slow_zone"] == {"x_min_m": 4.6, "x_max_m": 9.6, "half_width_m": 1.25}
         assert all(len(c) == 2 and all(isinstance(v, float) for v in c) for c in d["cells"])
-        assert d["objects"] == []                 # the cell-based decision holds no objects
+        assert d["objects"] == []                 # cells hold no objects; nothing here moves
     st = [d["state"] for d in lines]
     # boot: STOP held for hold_off (frames 0-9), then CLEAR
     assert st[:10] == ["STOP"] * 10 and {d["cause"] for d in lines[:10]} == {"boot"}
@@ -127,7 +127,7 @@ def test_out_file_every_frame_in_order_readable_with_json_only(tmp_path):
     assert summary["missed_stop_frames"] == 5 and summary["missed_stop_frame_indices"] == [
         60, 61, 62, 63, 64]
     assert independent_score(lines, run, 1.0) == (19, 5)
-    assert summary["decision"] == "cells" and summary["frames_total"] == N
+    assert summary["decision"] == "cells+movers" and summary["frames_total"] == N
 
 
 def test_out_with_tracks_lists_objects(tmp_path):
@@ -210,7 +210,7 @@ def test_the_table_names_false_and_missed_stops(tmp_path):
     run = make_run(tmp_path)
     p = eval_cli(str(run), "--pipeline", "laser", "--config", str(tmp_path / "box.toml"))
     assert p.returncode == 0, p.stderr
-    assert "decision cells: false-stop frames 19  missed-stop frames 5" in p.stdout
+    assert "decision cells+movers: false-stop frames 19  missed-stop frames 5" in p.stdout
 
 
 def test_stereo_novelty_eval_is_reproducible(tmp_path):
