@@ -55,17 +55,23 @@ def test_unplugged_laser_stops_within_two_cycles_of_its_timeout_and_recovers():
         d.shutdown()
 
 
-def test_driver_takes_over_at_a_real_obstacle_and_overrides_a_false_stop():
+def _detoured():
+    """stubble-day 0 driven with a perfect box until it stops before the first obstacle on
+    the path, then held at STOP 6 s: the driver has steered round (the field, its vehicle)."""
     f = SimField("stubble-day", 0, sensors=("laser",))
     v = f.vehicle
-    # drive with a perfect box until it stops before the first obstacle on the path
     for _ in range(200):
         f.step(0.1, f.oracle_command())
         if v.speed == 0.0:
             break
     assert v.clearance_ahead() < 6.0
-    for _ in range(60):                        # held at STOP 6 s: the driver steers round
+    for _ in range(60):
         f.step(0.1, GateState.STOP)
+    return f, v
+
+
+def test_driver_takes_over_at_a_real_obstacle_and_overrides_a_false_stop():
+    f, v = _detoured()
     assert v.detours == 1 and abs(v.offset_m) > 0 and v.clearance_ahead() > 6.0
     # a false stop in open field: the driver waits, then overrides and creeps on
     g = SimField("stubble-empty", 0, sensors=("laser",))
@@ -84,14 +90,7 @@ def test_easing_back_after_a_detour_the_vehicle_heads_where_it_goes_and_the_gyro
     moves and its yaw rate must say so: it used to slide sideways with its heading held (0.3 m
     a metre), so to the box's odometry everything still ahead seemed to move sideways at 0.3x
     its speed (a still drum became a 0.9 m/s mover)."""
-    f = SimField("stubble-day", 0, sensors=("laser",))
-    v = f.vehicle
-    for _ in range(200):
-        f.step(0.1, f.oracle_command())
-        if v.speed == 0.0:
-            break
-    for _ in range(60):
-        f.step(0.1, GateState.STOP)
+    f, v = _detoured()
     assert v.detours == 1 and abs(v.offset_m) > 0
     x0, y0, yaw0 = v.pose()
     gyro = yaw0                       # the heading the box would integrate from the yaw rate
