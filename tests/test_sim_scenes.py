@@ -284,6 +284,37 @@ def test_crossing_scene_is_the_coverage_field_with_only_walkers_crossing_each_la
             assert 2 <= len(xs) <= 3 and all(b - a >= 40.0 - 1e-6 for a, b in zip(xs, xs[1:]))
 
 
+def test_greenhouse_crossing_is_the_coverage_house_with_people_crossing_each_path():
+    """greenhouse-crossing: the greenhouse-coverage house of the seed with only people stepping
+    through the bush row across the path, 1-2 a path (where the RGB-D box's movers are
+    measured; the coverage drives met too few walkers to say anything)."""
+    c, x = build_scene("greenhouse-coverage", 2), build_scene("greenhouse-crossing", 2)
+    assert {k: v for k, v in x.params.items() if k not in ("obstacles", "walkers")} == \
+        {k: v for k, v in c.params.items() if k not in ("obstacles", "walkers")}
+    assert x.world.waves.tobytes() == c.world.waves.tobytes() and x.illumination == "greenhouse"
+    assert x.path.tobytes() == c.path.tobytes()
+    assert _sig(x) == _sig(build_scene("greenhouse-crossing", 2))
+    for seed in range(4):
+        sc = build_scene("greenhouse-crossing", seed)
+        period, passes = sc.world.bush_period_m, sc.params["paths"]
+        obs = sc.obstacles
+        assert sc.params["walkers"] == len(obs)
+        assert all(o.moving and o.placement == "crossing" and o.cls == "person" for o in obs)
+        per_path = {}
+        for o in obs:
+            assert 0.6 - 1e-9 <= math.hypot(o.vx_mps, o.vy_mps) <= 1.6 + 1e-9
+            x_cross = o.x_start + o.vx_mps * o.walk_time_s / 2
+            y_cross = o.y_start + o.vy_mps * o.walk_time_s / 2
+            path = int(round(y_cross / period))
+            assert abs(y_cross - path * period) < 1e-6                  # mid-walk on its path
+            assert 0.9 - 1e-6 <= abs(o.y_start - y_cross) <= 1.4 + 1e-6
+            per_path.setdefault(path, []).append(x_cross)
+        assert set(per_path) == set(range(passes))
+        for xs in per_path.values():
+            xs = sorted(xs)
+            assert 1 <= len(xs) <= 2 and all(b - a >= 10.0 - 1e-6 for a, b in zip(xs, xs[1:]))
+
+
 def test_a_thin_stake_is_drawn_by_the_stereo_camera_at_8_m():
     """The renderer marches in steps of ~0.6 % of the range: the scene's thinnest stake (8 cm)
     must still be a solid column of pixels where the stalk rule looks (8 m)."""

@@ -89,6 +89,10 @@ SCENE_KINDS: dict[str, str] = {
                         "vehicle is -5..25 m from them): what a decision on movers must stop for",
     "stubble-crossing-night": "the stubble-crossing field and walkers of the same seed at "
                               "night, lit only by the strobe at the cameras",
+    "greenhouse-crossing": "the greenhouse-coverage house of the seed with only people stepping "
+                           "through a bush row across the path (1-2 a path, drawn as "
+                           "greenhouse-coverage's crossing person: 0.9-1.4 m aside, 0.6-1.6 "
+                           "m/s, reaching the path when the sprayer is -5..25 m from them)",
     "stubble-lookalike": "the stubble-day field and obstacle course with the obstacles that look "
                          "like the field: a person in khaki on the path, the stubble-coloured "
                          "drum and a stubble-textured crate (the learned cue's hard cases)",
@@ -399,7 +403,7 @@ def build_scene(name: str, seed: int = 0) -> Scene:
     if name in ("stubble-coverage", "stubble-coverage-night", "stubble-thin",
                 "stubble-thin-night", "stubble-crossing", "stubble-crossing-night"):
         return _stubble_coverage(name, seed)
-    if name == "greenhouse-coverage":
+    if name in ("greenhouse-coverage", "greenhouse-crossing"):
         return _greenhouse_coverage(name, seed)
     # one RNG per world (not per scene name) so day / night / empty share the field
     if name == "greenhouse":
@@ -805,6 +809,24 @@ def _stubble_coverage(kind: str, seed: int) -> Scene:
 GREENHOUSE_RUN_OUT_M = 1.2
 
 
+def _greenhouse_walkers(rng, length: float, period: float, passes: int, lanes: list,
+                        run_out: float) -> list[Obstacle]:
+    """greenhouse-crossing: 1-2 people a path, each stepping through the bush row beside it
+    and across the path, drawn as greenhouse-coverage's crossing person (``_walker`` with
+    0.9-1.4 m aside at the sprayer's 0.7 m/s), at least 10 m apart along the path."""
+    obs: list[Obstacle] = []
+    for p in range(passes):
+        y = p * period
+        s0, _ = lanes[p]
+        fwd = p % 2 == 0
+        for x in _spaced_xs(rng, int(rng.integers(1, 3)), 8.0, length - 8.0, 10.0):
+            o = _person(rng, f"g{len(obs) + 1}", x, y, "standing")
+            o.height_m = float(min(o.height_m, 1.85))
+            s_cross = s0 + run_out + (x if fwd else length - x)
+            obs.append(_walker(rng, o, y, x, s_cross, 0.7, side_m=(0.9, 1.4)))
+    return obs
+
+
 def _greenhouse_coverage(kind: str, seed: int) -> Scene:
     rng = np.random.default_rng([seed, 31])
     half = float(rng.uniform(0.5, 0.75))                 # path half width
@@ -859,6 +881,9 @@ def _greenhouse_coverage(kind: str, seed: int) -> Scene:
             o = _thing(orng, f"g{len(obs) + 1}", x, y, things, protos)
             o.placement = "headland"
             obs.append(o)
+    if kind == "greenhouse-crossing":     # the same house (its draws above), only walkers
+        obs = _greenhouse_walkers(np.random.default_rng([seed, 33]), length, period, passes,
+                                  lanes, run_out)
     world = World("greenhouse", seed, obs, waves, extent=_extent(path),
                   path_half_width_m=half, bush_period_m=period,
                   bush_x_range=(0.0, length), sky_bgr=(0.97, 0.98, 0.98),
