@@ -200,14 +200,15 @@ class Vehicle:
             v1 = max(target, v0 - self.decel_mps2 * dt_s)
         else:
             v1 = min(target, v0 + self.accel_mps2 * dt_s)
-        ds = 0.5 * (v0 + v1) * dt_s * math.cos(self.heading_off)     # along the path
+        travel = 0.5 * (v0 + v1) * dt_s
+        ds = travel * math.cos(self.heading_off)          # along the path (less while easing back)
         self.s += ds
         if self.s >= self.path_length_m:
             self.s = self.path_length_m
             self.finished = True
             v1 = 0.0
         self.speed = v1
-        self.distance_m += ds
+        self.distance_m += travel
         self.time_s += dt_s
         if self.speed < 0.05:
             self.stopped_s += dt_s
