@@ -182,8 +182,8 @@ def test_the_installed_package_is_the_one_that_runs(ran):
 
 
 def test_links_and_cli_tests_pass_from_the_installed_wheel(box, tmp_path):
-    """The CAN link tests (the DBC found as package data) and the CLI error tests, run by the
-    installed venv's Python from a copy of tests/ with no source tree beside it."""
+    """CAN link tests (the DBC found as package data) and CLI error tests, run by the installed
+    venv's Python from a copy of tests/ with no source tree beside it."""
     root, site = box
     t = tmp_path / "t"
     shutil.copytree(ROOT / "tests", t / "tests",
@@ -194,8 +194,13 @@ def test_links_and_cli_tests_pass_from_the_installed_wheel(box, tmp_path):
     r = subprocess.run([str(py), "-c", "import appliance, drivers; print(appliance.__file__)"],
                        cwd=t, capture_output=True, text=True, timeout=60)
     assert r.stdout.strip().startswith(str(site)), r.stdout + r.stderr
+    # a sample of each file (the whole of both ran from the source tree already): the DBC read
+    # by both sides of a real claim, the commands' errors; 42 tests took 25 s of the suite
     r = subprocess.run([str(py), "-m", "pytest", "-q", "-p", "no:cacheprovider",
-                        "tests/test_can_link.py", "tests/test_cli_errors.py"],
+                        "tests/test_can_link.py", "tests/test_cli_errors.py", "-k",
+                        "crc_and_ids or status_frames_decode or reaches_the_vehicle or run_sim "
+                        "or sim_ or no_daemon or config_check_catches or bad_mavlink or "
+                        "connection_syntax or unexpected_exception"],
                        cwd=t, capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-2000:]
     assert re.search(r"\d+ passed", r.stdout) and "skipped" not in r.stdout, r.stdout[-2000:]

@@ -26,10 +26,12 @@ def test_short_soak_no_false_clear_stop_within_two_cycles_no_fd_growth(tmp_path)
     if shutil.which("mavproxy.py", path=str(Path(sys.executable).parent)) is None and \
             shutil.which("mavproxy.py") is None:
         missing_tool("MAVProxy not installed (pip install --no-deps MAVProxy)")
-    # 105 s with 20 s of warm-up leaves the same ~85 s for judging RSS and fds as the 120 s
-    # with 30 s it was (a process needs 60 s), 15 s less of the suite's 10 minutes
-    r = subprocess.run([sys.executable, str(ROOT / "tools/soak.py"), "--minutes", "1.75",
-                        "--seed", "3", "--interval", "6", "--warmup", "20", "--out", str(tmp_path),
+    # 84 s with 15 s of warm-up leaves ~68 s for judging RSS and fds (a process needs 60 s:
+    # the median fd count of its first 30 s against its last 30 s) and ~12 faults (>= 5 asked);
+    # the hour-long soak is the tool's (docs/reliability.md). Was 105 s / 20 s (~85 s judged):
+    # the suite's 10 minutes were breached (stop 30's CI: 671 s)
+    r = subprocess.run([sys.executable, str(ROOT / "tools/soak.py"), "--minutes", "1.4",
+                        "--seed", "3", "--interval", "6", "--warmup", "15", "--out", str(tmp_path),
                         "--json"],
                        capture_output=True, text=True, timeout=420, cwd=str(ROOT))
     assert r.returncode == 0, r.stderr[-3000:]
@@ -50,6 +52,7 @@ def test_short_soak_no_false_clear_stop_within_two_cycles_no_fd_growth(tmp_path)
     assert s["max_stop_latency_cycles_can"] <= 2, detail
     assert s["recoveries"] == s["faults_injected"], full["faults"]
     assert s["fd_growth"] <= 0, brief
+    assert s["rss_judged_over_s"] >= 60, brief           # the fd judgement above had its window
     # the daemon's own memory account was sampled (glibc): the soak can tell a leak from an
     # allocator keeping freed pages
     from appliance.memory import malloc_stats
