@@ -44,3 +44,16 @@ def test_a_bad_config_is_one_clear_line(tmp_path):
     bad.write_text("[perception\n")
     p = _run("stubble-coverage", "1", "--config", str(bad))
     assert p.returncode == 2 and "not valid TOML" in p.stderr and "Traceback" not in p.stderr
+
+
+def test_why_false_stops_on_a_laser_drive_says_which_tool_in_one_line(tmp_path):
+    """tools/why_false_stops.py explains the novelty pipeline's stops; on a laser-only drive it
+    raised StopIteration with a traceback (found in the eighteenth session)."""
+    laser = tmp_path / "laser.toml"
+    laser.write_text('[perception]\npipelines = ["laser"]\n')
+    p = subprocess.run([sys.executable, str(ROOT / "tools" / "why_false_stops.py"),
+                        "stubble-coverage", "24", "--minutes", "0.1", "--config", str(laser),
+                        "--out", str(tmp_path / "out")], cwd=ROOT, capture_output=True,
+                       text=True, timeout=300)
+    assert p.returncode == 2 and "Traceback" not in p.stderr, p.stderr[-2000:]
+    assert "not stereo-novelty" in p.stderr and "laser_false_stops.py" in p.stderr
