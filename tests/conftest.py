@@ -76,18 +76,8 @@ def pytest_collection_modifyitems(session, config, items):
 
 def pytest_unconfigure(config):
     """A soak still running when pytest ends (interrupted, or its test deselected by -x):
-    SIGTERM to its process group, so its cleanup (namespace, emulators) runs."""
-    import os
-    import signal
-    import subprocess
-    while _background_soak:
-        proc, _ = _background_soak.pop()
-        if proc.poll() is None:
-            try:
-                os.killpg(proc.pid, signal.SIGTERM)
-                proc.wait(30)
-            except (ProcessLookupError, subprocess.TimeoutExpired):
-                try:
-                    os.killpg(proc.pid, signal.SIGKILL)
-                except ProcessLookupError:
-                    pass
+    ended so that its cleanup (namespace, emulators) runs."""
+    if _background_soak:
+        from tests.test_soak import stop_soak
+        while _background_soak:
+            stop_soak(_background_soak.pop()[0])

@@ -35,8 +35,7 @@ def two(tmp_path_factory):
         cfg = base / f"{name}.toml"
         cfg.write_text(text)
         procs[name] = subprocess.Popen(
-            [sys.executable, "-c", "import sys; from appliance.cli import main; "
-             "sys.exit(main(sys.argv[1:]))", "campaign", "--scene", "stubble-coverage",
+            [sys.executable, "-m", "appliance.cli", "campaign", "--scene", "stubble-coverage",
              "--seeds", "1-2", "--minutes", "0.45", "--out", str(base / name), "--workers", "1",
              "--config", str(cfg), "--stereo-scale", "0.25", "--no-report"],
             cwd=str(ROOT), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

@@ -3,11 +3,11 @@ with JSON events on stdout (the vehicle emulators in drivers/emulators), free po
 the real appliance loop with a hand-driven laser and the link under test, run at 10 Hz."""
 from __future__ import annotations
 
+import gc
 import json
 import queue
 import socket
 import subprocess
-import gc
 import sys
 import threading
 import time
@@ -90,6 +90,7 @@ class LoopRig:
         self.loop.on_cycle.append(lambda r: self.outputs.append(r.output))
         self.stop_evt = threading.Event()
         self.thread = threading.Thread(target=self.loop.run, args=(self.stop_evt,), daemon=True)
+        self._froze = False
 
     _frozen = 0           # rigs running: the test process's heap is frozen while any runs
 
@@ -119,7 +120,7 @@ class LoopRig:
         self.thread.join(3)
         self.loop.send_stop_everywhere("test over")
         self.link.close()
-        if getattr(self, "_froze", False):
+        if self._froze:
             self._froze = False
             LoopRig._frozen -= 1
             if LoopRig._frozen == 0:

@@ -52,9 +52,10 @@ def main(argv=None) -> int:
     log = open(out / f"{a.kind}-{a.seed}.jsonl", "w")
     pipe = next((p for p in d.daemon.pipelines if hasattr(p, "novelty")), None)
     if pipe is None:
-        print(f"why_false_stops: error: the drive runs {', '.join(p.name for p in d.daemon.pipelines)}"
-              ", not stereo-novelty: this tool explains the novelty pipeline's false stops "
-              "(for the laser's: tools/laser_false_stops.py)", file=sys.stderr)
+        runs = ", ".join(p.name for p in d.daemon.pipelines)
+        print(f"why_false_stops: error: the drive runs {runs}, not stereo-novelty: this tool "
+              "explains the novelty pipeline's false stops (for the laser's: "
+              "tools/laser_false_stops.py)", file=sys.stderr)
         return 2
     z = d.zones
     hist: deque = deque(maxlen=6)
