@@ -58,6 +58,9 @@ def main(argv=None):
     ap.add_argument("--interleave", action="store_true",
                     help="time the pipeline and the two full-frame matchers on each frame in "
                          "turn instead of in three passes")
+    ap.add_argument("--no-decision", action="store_true",
+                    help="do not time the box's decision (fusion, tracking, zones) after "
+                         "each pipeline call")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="stereo-novelty option (value parsed as JSON, else a string)")
     a = ap.parse_args(argv)
@@ -94,6 +97,15 @@ def main(argv=None):
     for s in learn:
         nov.process(inp(s))
         nov.novelty.wait_idle(60)
+    # the box's decision after perception, as the daemon runs it: fusion into the grid, the
+    # default [tracking] (the cell decision with the movers' tracker beside it), the zones;
+    # the frames' stamps are made monotonic (the reps replay the same frames)
+    from appliance.config import default_config
+    from appliance.decision import DecisionCore, decision_name
+    dcfg = default_config()
+    core = DecisionCore(dcfg)
+    tick = [0]
+    dec_cpu: list[float] = []
     stages: dict[str, list[float]] = {}
     stages_cpu: dict[str, list[float]] = {}
     whole, cpu, whole_full, cpu_full, whole_k, cpu_k, novel, px, cues = ([] for _ in range(9))
@@ -113,6 +125,12 @@ def main(argv=None):
                         d = pipe.process(inp(s))
                         cl.append(1e3 * (time.thread_time() - c))
                         wl.append(1e3 * (time.perf_counter() - t))
+                        if pipe is nov and not a.no_decision:
+                            tick[0] += 1
+                            c = time.thread_time()
+                            core.perceive({"stereo-novelty": d}, s.vehicle,
+                                          tick[0] * 100_000_000)
+                            dec_cpu.append(1e3 * (time.thread_time() - c))
                         if pipe is nov:
                             for k, v in d.debug["ms"].items():
                                 stages.setdefault(k, []).append(v)
@@ -144,6 +162,11 @@ def main(argv=None):
     print(f"  stereo-novelty ({a.matcher}) each frame's best of {a.reps} reps, CPU: "
           f"median {np.median(best):.1f}  max {best.max():.1f}  (what the frames cost without "
           f"the machine's noise: the spread above is other tenants of a shared host)")
+    if dec_cpu:
+        both = np.asarray(cpu) + np.asarray(dec_cpu)
+        print(f"  decision ({decision_name(dcfg.tracking)}: fusion, tracking, zones) CPU  "
+              f"{pct(dec_cpu)}")
+        print(f"  stereo-novelty + decision       CPU  {pct(both)}")
     print(f"  full-frame {a.matcher} native          wall {pct(whole_full)}")
     print(f"  full-frame {a.matcher} native          CPU  {pct(cpu_full)}")
     print(f"  full-frame {a.matcher} at 1/{k} (as matched) CPU  {pct(cpu_k)}")
@@ -151,6 +174,9 @@ def main(argv=None):
     print(f"  speed-up (CPU p50) vs full-frame native: {r(cpu_full, cpu):.1f}x, "
           f"vs full-frame at the same matching resolution: {r(cpu_k, cpu):.1f}x; "
           f"(wall p50 vs native: {r(whole_full, whole):.1f}x)")
+    if dec_cpu:
+        print(f"  perception + decision vs full-frame at the same matching resolution (CPU "
+              f"p50): {r(cpu_k, both):.2f}x")
 
 
 if __name__ == "__main__":
