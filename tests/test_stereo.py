@@ -10,7 +10,7 @@ from appliance.perception import SensorInputs, make_pipeline
 from appliance.perception.stereo import (StereoConfig, auto_disparities, dedupe_cells,
                                          disparity_regions, downscale, ground_search_range,
                                          height_band, make_matcher, mask_boxes, match_factor,
-                                         merge_boxes, points_from_disparity, scaled_calibration,
+                                         merge_boxes, merge_strips, points_from_disparity, scaled_calibration,
                                          strip_boxes)
 from hal.types import Mount, PinholeCalibration, StereoCalibration
 
@@ -110,6 +110,54 @@ def test_region_matching_with_a_shifted_range_agrees_with_ground_truth_and_full_
     # an empty range is skipped
     none, w0 = disparity_regions(m, L, R, [box], [(dmin, 0)])
     assert w0 == 0 and not none.any()
+
+
+def test_merge_strips_joins_touching_bands_with_overlapping_rows_when_cheaper():
+    # three 32-px bands of one region, the middle one's rows shifted, each searching from the
+    # horizon (d_min 0) to a near foot: matched apart each pays its own 128 extension columns
+    boxes = [(100, 40, 132, 168), (132, 48, 164, 176), (164, 40, 196, 168)]
+    ranges = [(0, 128), (0, 128), (0, 112)]
+    b, r, p = merge_strips(boxes, ranges, 3)
+    assert b == [(100, 40, 196, 176)] and r == [(0, 128)]
+    assert p == [[(100, 132, 0, 128, 40, 168), (132, 164, 0, 128, 48, 176),
+                  (164, 196, 0, 112, 40, 168)]]
+    # no wider than max_width; bands that do not touch, or whose rows do not overlap, and
+    # empty ranges are never joined
+    b, _, p = merge_strips(boxes, ranges, 3, max_width=64)
+    assert b == [(100, 40, 164, 176), (164, 40, 196, 168)] and len(p[0]) == 2
+    apart = [(100, 40, 132, 168), (140, 40, 172, 168), (172, 200, 204, 260), (204, 200, 236, 260)]
+    b, _, _ = merge_strips(apart, [(0, 128), (0, 128), (0, 0), (0, 128)], 3)
+    assert sorted(b) == sorted(apart)
+    b, _, _ = merge_strips([(100, 40, 132, 100), (132, 100, 164, 160)], [(0, 128)] * 2, 3)
+    assert len(b) == 2
+    # narrow ranges far apart: the union would search more than it saves
+    b, r, _ = merge_strips([(100, 200, 132, 264), (132, 200, 164, 264)], [(0, 16), (96, 16)], 3)
+    assert len(b) == 2 and r == [(0, 16), (96, 16)]
+
+
+def test_merged_boxes_write_each_member_with_its_own_range_only():
+    L, R, gt, vis = _cones()
+    m = make_matcher(StereoConfig(matcher="sgbm", num_disparities=64), 1.0, 1.0)
+    H, W = L.shape[:2]
+    members = [(200, 120, 232, 200), (232, 130, 264, 210)]
+    rng = [(0, 64), (16, 48)]
+    boxes, ranges, parts = merge_strips(members, rng, m.margin)
+    assert len(boxes) == 1
+    d, _ = disparity_regions(m, L, R, boxes, ranges, parts)
+    alone, _ = disparity_regions(m, L, R, members, rng)
+    inside = np.zeros((H, W), bool)
+    for (x0, y0, x1, y1), (dmin, n) in zip(members, rng):
+        inside[y0:y1, x0:x1] = True
+        seg = d[y0:y1, x0:x1]
+        lo = dmin + 1.0 if dmin > 0 else 0.0
+        assert seg.any() and np.all((seg == 0) | ((seg >= lo) & (seg < dmin + n)))
+    assert not d[~inside].any()      # the union's rows and columns outside the members: nothing
+    # the same surfaces as matching each member alone (SGBM sees more context in the union)
+    both = (d > 0) & (alone > 0)
+    assert both.sum() > 0.5 * (alone > 0).sum()
+    assert (np.abs(d - alone)[both] <= 1.0).mean() > 0.9
+    known = both & (gt > 0) & vis
+    assert np.median(np.abs(d - gt)[known]) < 0.5
 
 
 def test_ground_search_range_keeps_every_point_above_the_ground_and_narrows_the_search():

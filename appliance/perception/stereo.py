@@ -308,9 +308,10 @@ def disparity_regions(matcher: Matcher, left: np.ndarray, right: np.ndarray,
     1 px of ``d_min``) is dropped: the true disparity is probably outside the range. Without
     ``ranges`` every box searches ``[0, num_disparities)`` (the full-frame behaviour).
 
-    ``parts`` (with ``ranges``, from :func:`merge_strips`): per box a list of
-    ``(x0, x1, d_min, n)``; in columns ``[x0, x1)`` only disparities in ``[d_min, d_min + n)``
-    are kept (above the lower end as above), as if those columns had been matched alone.
+    ``parts`` (with ``ranges``, from :func:`merge_strips`): per box a list of its members
+    ``(x0, x1, d_min, n, y0, y1)``; only the members' rectangles are written, each with only
+    the disparities in ``[d_min, d_min + n)`` (above the lower end as above), as if it had
+    been matched alone (a merged box spans the union of its members' rows and columns).
 
     ``pad_left``: see the code (the left columns of the image are matched, not left blind:
     without it the leftmost ``num_disparities`` columns, 22 % of a 640-px frame with 144
@@ -370,14 +371,16 @@ def disparity_regions(matcher: Matcher, left: np.ndarray, right: np.ndarray,
         if cx1 > W:
             d = d[:, :W - cx0]
             cx1 = W
-        sx0, sy0 = x0 - cx0, y0 - cy0
-        out = disp[y0:y1, x0:x1]
-        out[:] = d[sy0:sy0 + (y1 - y0), sx0:sx0 + (x1 - x0)]
         if parts is not None and len(parts[i]) > 1:
-            for (px0, px1, pd, pn) in parts[i]:
-                seg = out[:, px0 - x0:px1 - x0]
+            # each member's own rectangle, with only its own range's disparities
+            for (px0, px1, pd, pn, py0, py1) in parts[i]:
+                seg = d[py0 - cy0:py1 - cy0, px0 - cx0:px1 - cx0]
                 lo = pd + 1.0 if pd > 0 else 0.0
-                seg[(seg < lo) | (seg >= pd + pn)] = 0.0
+                disp[py0:py1, px0:px1] = np.where((seg < lo) | (seg >= pd + pn),
+                                                  np.float32(0.0), seg)
+        else:
+            sx0, sy0 = x0 - cx0, y0 - cy0
+            disp[y0:y1, x0:x1] = d[sy0:sy0 + (y1 - y0), sx0:sx0 + (x1 - x0)]
     return disp, work
 
 
@@ -509,39 +512,53 @@ def strip_boxes(calib, boxes, nd: int, vehicle=None, strip_rows: int = 64,
     return out_b, out_r
 
 
-# SGBM's time per matched pixel is about (SGBM_FIXED_DISPARITIES + n) units for a range of n
-# disparities (measured with OpenCV 4 3-way SGBM on one core: 640 px crops of 64 and 128
-# disparities, and 166 px crops; see docs/stereo-novelty.md "Speed")
-SGBM_FIXED_DISPARITIES = 61
+def crop_cost(w: int, n: int, rows: int) -> float:
+    """SGBM's CPU time (ms, OpenCV 4 3-way, one core) for a box ``w`` columns wide and ``rows``
+    high searching ``n`` disparities: the fit of docs/stereo-novelty.md "Speed" (12 crop sizes,
+    134 rows: 1.8e-4 w n + 6.4e-3 w + 5.3e-3 (w + n); the last term is the crop's n extension
+    columns every crop pays for) scaled by its rows, plus ~0.05 ms of Python per crop."""
+    return rows / 134.0 * (1.8e-4 * w * n + 6.4e-3 * w + 5.3e-3 * (w + n)) + 0.05
 
 
-def merge_strips(boxes, ranges, margin: int, fixed: int = SGBM_FIXED_DISPARITIES,
-                 max_width: int = 0):
-    """Join side-by-side boxes with the same rows (neighbouring bands of one region) into one
-    box searching the union of their ranges, when that costs no more: matching time ~
-    (width + 2 margin) x (fixed + n) per row; no merged box wider than ``max_width`` (0 = no
-    limit).
+def merge_strips(boxes, ranges, margin: int, max_width: int = 0):
+    """Join side-by-side boxes (one touching the other's right edge, their rows overlapping:
+    neighbouring bands of one region) into one box over the union of their rows and columns
+    searching the union of their ranges, when :func:`crop_cost` says that is cheaper; no
+    merged box wider than ``max_width`` (0 = no limit). Each box joins the neighbour on its
+    left that saves the most; boxes are taken left to right, so a merged box grows to the
+    right.
 
     Returns (boxes, ranges, parts): ``parts[i]`` lists the members of box ``i`` as
-    ``(x0, x1, d_min, n)``; pass them to :func:`disparity_regions`, which then keeps in each
-    member's columns only the disparities its own range allows (the union searches more, and a
-    wider range lets more mismatches through: measured 2x the false-positive cells on the empty
-    field without this)."""
-    out: list = []
-    for b, r in sorted(zip(boxes, ranges), key=lambda t: (t[0][1], t[0][3], t[0][0])):
-        part = (b[0], b[2], r[0], r[1])
-        if out and r[1] > 0:
-            pb, pr, pp = out[-1]
-            if (pb[1] == b[1] and pb[3] == b[3] and pb[2] == b[0] and pr[1] > 0
-                    and (max_width <= 0 or b[2] - pb[0] <= max_width)):
-                lo, hi = min(pr[0], r[0]), max(pr[0] + pr[1], r[0] + r[1])
-                n = int(math.ceil((hi - lo) / 16.0)) * 16
-                cost = lambda w, nn: (w + 2 * margin) * (fixed + nn)       # noqa: E731
-                if cost(b[2] - pb[0], n) <= cost(pb[2] - pb[0], pr[1]) + cost(b[2] - b[0], r[1]):
-                    out[-1] = ((pb[0], pb[1], b[2], b[3]), (max(0, hi - n), n), pp + [part])
+    ``(x0, x1, d_min, n, y0, y1)``; pass them to :func:`disparity_regions`, which then keeps in
+    each member's rectangle only the disparities its own range allows (the union searches
+    more, and a wider range lets more mismatches through: measured 2x the false-positive
+    cells on the empty field without this)."""
+    m2 = 2 * margin
+    cost = lambda b, n: crop_cost(b[2] - b[0] + m2, n, b[3] - b[1] + m2)    # noqa: E731
+    out: list = []                                   # [box, range, members, cost]
+    for b, r in sorted(zip(boxes, ranges), key=lambda t: (t[0][0], t[0][1])):
+        b, r = tuple(int(v) for v in b), tuple(int(v) for v in r)
+        part = (b[0], b[2], r[0], r[1], b[1], b[3])
+        best = None
+        if r[1] > 0:
+            own = cost(b, r[1])
+            for i, (ob, orr, _, oc) in enumerate(out):
+                if ob[2] != b[0] or orr[1] <= 0 or ob[1] >= b[3] or b[1] >= ob[3]:
                     continue
-        out.append((tuple(b), tuple(r), [part]))
-    return [b for b, _, _ in out], [r for _, r, _ in out], [p for _, _, p in out]
+                if max_width > 0 and b[2] - ob[0] > max_width:
+                    continue
+                lo, hi = min(orr[0], r[0]), max(orr[0] + orr[1], r[0] + r[1])
+                n = int(math.ceil((hi - lo) / 16.0)) * 16
+                nb = (ob[0], min(ob[1], b[1]), b[2], max(ob[3], b[3]))
+                c = cost(nb, n)
+                if c <= oc + own and (best is None or oc + own - c > best[0]):
+                    best = (oc + own - c, i, nb, (max(0, hi - n), n), c)
+        if best is not None:
+            _, i, nb, nr, c = best
+            out[i] = [nb, nr, out[i][2] + [part], c]
+            continue
+        out.append([b, r, [part], cost(b, r[1]) if r[1] > 0 else 0.0])
+    return [o[0] for o in out], [o[1] for o in out], [o[2] for o in out]
 
 
 def points_from_disparity(disp: np.ndarray, calib, select: np.ndarray | None = None,

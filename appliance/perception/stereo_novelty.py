@@ -75,14 +75,14 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
                         doc="ground_range: a region's box is cut into column bands this wide (at "
                             "matching resolution), each trimmed to its masked rows and searched "
                             "from its own foot (0 = whole box)")
-    merge_bands: bool = _f(False, doc="ground_range: neighbouring bands' strips with the same "
-                                       "rows are matched as one box over the union of their "
-                                       "ranges when that is cheaper (each band keeps only the "
-                                       "disparities of its own range). Off: 10-14 % less "
-                                       "matching time, but SGBM fills wide textureless spans "
-                                       "(the sky over the horizon) that narrow crops leave "
-                                       "empty: +19 % (64 px) to +59 % (no limit) stubble "
-                                       "points on the empty field")
+    merge_bands: bool = _f(False, doc="ground_range: neighbouring bands' strips whose rows "
+                                       "overlap are matched as one box over their union when "
+                                       "SGBM's fitted crop cost says that is cheaper (each "
+                                       "band keeps only its own rows and range). Off: -10 % "
+                                       "matching time with merge_max_cols = 0, recall the "
+                                       "same, but +16 % false-positive frames by day and +23 % "
+                                       "false cells at night on acceptance seed 1001 "
+                                       "(docs/front-end.md, Speed)")
     merge_max_cols: int = _f(64, lo=0, hi=16384,
                              doc="merge_bands: no merged box wider than this (matching "
                                  "resolution px; 0 = no limit)")
