@@ -104,7 +104,7 @@ def main(argv=None):
     from appliance.decision import DecisionCore, decision_name
     dcfg = default_config()
     core = DecisionCore(dcfg)
-    tick = [0]
+    tick = 0
     dec_cpu: list[float] = []
     stages: dict[str, list[float]] = {}
     stages_cpu: dict[str, list[float]] = {}
@@ -126,10 +126,9 @@ def main(argv=None):
                         cl.append(1e3 * (time.thread_time() - c))
                         wl.append(1e3 * (time.perf_counter() - t))
                         if pipe is nov and not a.no_decision:
-                            tick[0] += 1
+                            tick += 1
                             c = time.thread_time()
-                            core.perceive({"stereo-novelty": d}, s.vehicle,
-                                          tick[0] * 100_000_000)
+                            core.perceive({"stereo-novelty": d}, s.vehicle, tick * 100_000_000)
                             dec_cpu.append(1e3 * (time.thread_time() - c))
                         if pipe is nov:
                             for k, v in d.debug["ms"].items():
