@@ -42,6 +42,41 @@ def parse_seeds(text: str) -> list[int]:
     return out
 
 
+def training_laser_setup(tool: str, seeds_text: str, config: str | None
+                         ) -> tuple[list[int], dict] | None:
+    """For the laser probes: (the training seeds of ``seeds_text``, the drives' extra config:
+    the laser alone with ``config`` merged over it), or None after one line on stderr naming
+    ``tool`` (seeds that do not parse, acceptance seeds, a config that does not load)."""
+    try:
+        seeds = parse_seeds(seeds_text)
+    except ValueError:
+        print(f"{tool}: seeds must look like 1-10 or 1,3,5 (got {seeds_text!r})",
+              file=sys.stderr)
+        return None
+    if any(s >= 1000 for s in seeds):
+        print(f"{tool}: seeds >= 1000 are the acceptance set; decide on training seeds",
+              file=sys.stderr)
+        return None
+    from appliance.campaign import load_extra_config
+    from appliance.campaign_drive import deep_merge
+    from hal.errors import FieldguardError
+    try:
+        return seeds, deep_merge({"perception": {"pipelines": ["laser"]}},
+                                 load_extra_config(config) if config else {})
+    except FieldguardError as exc:
+        print(f"{tool}: {exc}", file=sys.stderr)
+        return None
+
+
+def drive_each(tool: str, seeds: list[int], probe) -> list:
+    """``probe(seed)`` for each seed in turn, a progress line on stderr after each."""
+    out = []
+    for i, s in enumerate(seeds):
+        out.append(probe(s))
+        print(f"{tool}: {i + 1}/{len(seeds)} drives", file=sys.stderr, flush=True)
+    return out
+
+
 def probe_drive(kind: str, seed: int, minutes: float, extra: dict) -> dict:
     from appliance.campaign import make_spec
     from appliance.campaign_drive import Drive
@@ -173,29 +208,12 @@ def main(argv=None) -> int:
                     help="the table with the camera's ground (the config must run "
                          "stereo-novelty with ground_for_laser) instead of the true one")
     a = ap.parse_args(argv)
-    try:
-        seeds = parse_seeds(a.seeds)
-    except ValueError:
-        print(f"laser_ground_probe: seeds must look like 1-10 or 1,3,5 (got {a.seeds!r})",
-              file=sys.stderr)
+    setup = training_laser_setup("laser_ground_probe", a.seeds, a.config)
+    if setup is None:
         return 2
-    if any(s >= 1000 for s in seeds):
-        print("laser_ground_probe: seeds >= 1000 are the acceptance set; decide on training "
-              "seeds", file=sys.stderr)
-        return 2
-    from appliance.campaign import load_extra_config
-    from appliance.campaign_drive import deep_merge
-    from hal.errors import FieldguardError
-    try:
-        extra = deep_merge({"perception": {"pipelines": ["laser"]}},
-                           load_extra_config(a.config) if a.config else {})
-    except FieldguardError as exc:
-        print(f"laser_ground_probe: {exc}", file=sys.stderr)
-        return 2
-    drives = []
-    for i, s in enumerate(seeds):
-        drives.append(probe_drive(a.kind, s, a.minutes, extra))
-        print(f"laser_ground_probe: {i + 1}/{len(seeds)} drives", file=sys.stderr, flush=True)
+    seeds, extra = setup
+    drives = drive_each("laser_ground_probe", seeds,
+                        lambda s: probe_drive(a.kind, s, a.minutes, extra))
     summary = summarise(drives, a.estimate)
     if a.json:
         print(json.dumps(summary))

@@ -40,6 +40,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import numpy as np  # noqa: E402
 
+from tools.laser_ground_probe import drive_each, training_laser_setup  # noqa: E402
+
 HEIGHTS = (0.2, 0.3, 0.4)          # T: above the scan's own ground
 WIDTHS = (0.1, 0.2, 0.3)           # W: a run of beams at least this wide
 CORRIDOR_M = 10.0
@@ -47,14 +49,6 @@ CORRIDOR_M = 10.0
 
 def parse_list(text: str, cast=float) -> list:
     return [cast(x) for x in text.split(",") if x.strip()]
-
-
-def parse_seeds(text: str) -> list[int]:
-    out: list[int] = []
-    for part in text.split(","):
-        a, _, b = part.partition("-")
-        out += list(range(int(a), int(b or a) + 1))
-    return out
 
 
 def scan_heights(r: np.ndarray, ang: np.ndarray, mount, roll: float, pitch: float,
@@ -265,33 +259,20 @@ def main(argv=None) -> int:
     ap.add_argument("--json", action="store_true", help="print the summary as JSON")
     a = ap.parse_args(argv)
     try:
-        seeds = parse_seeds(a.seeds)
         meets = parse_list(a.meet)
     except ValueError:
-        print(f"tilted_laser_probe: seeds look like 1-10 or 1,3,5 and --meet like 5,7 (got "
-              f"{a.seeds!r}, {a.meet!r})", file=sys.stderr)
-        return 2
-    if any(s >= 1000 for s in seeds):
-        print("tilted_laser_probe: seeds >= 1000 are the acceptance set; decide on training "
-              "seeds", file=sys.stderr)
-        return 2
+        meets = []
     if not meets or any(m <= 0 for m in meets) or a.mount_z <= 0:
-        print("tilted_laser_probe: --meet and --mount-z must be positive", file=sys.stderr)
+        print(f"tilted_laser_probe: --meet is a list of positive distances like 5,7 and "
+              f"--mount-z positive (got {a.meet!r}, {a.mount_z})", file=sys.stderr)
         return 2
-    from appliance.campaign import load_extra_config
-    from appliance.campaign_drive import deep_merge
-    from hal.errors import FieldguardError
-    try:
-        extra = deep_merge({"perception": {"pipelines": ["laser"]}},
-                           load_extra_config(a.config) if a.config else {})
-    except FieldguardError as exc:
-        print(f"tilted_laser_probe: {exc}", file=sys.stderr)
+    setup = training_laser_setup("tilted_laser_probe", a.seeds, a.config)
+    if setup is None:
         return 2
-    drives = []
-    for i, s in enumerate(seeds):
-        drives.append(probe_drive(a.kind, s, a.minutes, extra, meets, a.mount_z, a.window,
-                                  a.pct))
-        print(f"tilted_laser_probe: {i + 1}/{len(seeds)} drives", file=sys.stderr, flush=True)
+    seeds, extra = setup
+    drives = drive_each("tilted_laser_probe", seeds,
+                        lambda s: probe_drive(a.kind, s, a.minutes, extra, meets, a.mount_z,
+                                              a.window, a.pct))
     summary = summarise(drives, meets)
     if a.json:
         print(json.dumps(summary, indent=1))
