@@ -34,6 +34,7 @@ import argparse
 import json
 import math
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
@@ -47,8 +48,8 @@ WIDTHS = (0.1, 0.2, 0.3)           # W: a run of beams at least this wide
 CORRIDOR_M = 10.0
 
 
-def parse_list(text: str, cast=float) -> list:
-    return [cast(x) for x in text.split(",") if x.strip()]
+def parse_list(text: str) -> list[float]:
+    return [float(x) for x in text.split(",") if x.strip()]
 
 
 def scan_heights(r: np.ndarray, ang: np.ndarray, mount, roll: float, pitch: float,
@@ -101,7 +102,6 @@ def probe_drive(kind: str, seed: int, minutes: float, extra: dict, meets: list[f
     from appliance.campaign import make_spec
     from appliance.campaign_drive import Drive
     from drivers.sim.field import laser_geometry
-    from drivers.sim.render import cast_laser
     from drivers.sim.world import MAT_OBSTACLE, MAT_STUBBLE
     from hal.types import Mount
     spec = make_spec(kind, seed, minutes, 0.5, extra)
@@ -110,17 +110,18 @@ def probe_drive(kind: str, seed: int, minutes: float, extra: dict, meets: list[f
     z, f = d.zones, d.field
     world = f.scene.world
     base = laser_geometry()
-    mounts = {m: Mount(base.mount.x_m, 0.0, mount_z, 0.0,
-                       math.degrees(math.atan2(mount_z, m)), 0.0) for m in meets}
+    # one second scanner per meet: the field's laser geometry on a lower-pitched mount
+    geos = {m: replace(base, mount=Mount(base.mount.x_m, 0.0, mount_z, 0.0,
+                                         math.degrees(math.atan2(mount_z, m)), 0.0))
+            for m in meets}
     ang = base.angles_rad()
     step = abs(math.radians(base.angle_step_deg))
-    rng = np.random.default_rng([seed, 99])
     cycles = [0]
     # per meet: per (T, W): [false cycles in corridor, false cycles in the stop zone]
     false = {m: {(t, w): [0, 0] for t in HEIGHTS for w in WIDTHS} for m in meets}
     # per meet: obstacle id -> {"cls", "hit": farthest ahead hit, (T, W): farthest flagged}
     seen: dict = {m: {} for m in meets}
-    hit_t: dict[str, float] = {}                    # obstacle id -> first collision time
+    hit_t: dict[str, int] = {}                      # obstacle id -> cycle of its collision
     ground_ok = {m: 0 for m in meets}               # cycles the plane met ground in the path
 
     def after(res):
@@ -131,13 +132,13 @@ def probe_drive(kind: str, seed: int, minutes: float, extra: dict, meets: list[f
         veh = f.vehicle
         for oid in veh.obstacles_hit:
             hit_t.setdefault(oid, cycles[0])
-        for m, mt in mounts.items():
-            c, _, rb = f._sensor_pose(mt)
-            dirs = (rb @ np.stack([np.cos(ang), np.sin(ang), np.zeros_like(ang)])).T
-            r = cast_laser(world, c, dirs, base.range_max_m).astype(np.float64)
-            r = np.where(r > 0.05, r + rng.standard_normal(r.shape) * 0.01, np.nan)
+        seq = res.inputs.laser.seq if res.inputs.laser is not None else cycles[0]
+        for i, (m, g) in enumerate(geos.items()):
+            # the simulator's laser model (ranges, noise, no return = nan), its own noise stream
+            r = np.asarray(f.render_laser(0, seq, geometry=g, sensor=20 + i).ranges_m,
+                           np.float64)
             pts, above, ok = scan_heights(
-                r, ang, mt, roll, pitch, window_m, pct,
+                r, ang, g.mount, roll, pitch, window_m, pct,
                 region=(z.front_x_m - 2.0, z.front_x_m + CORRIDOR_M + 2.0,
                         z.half_width_m + 0.5 + window_m))
             ahead = pts[:, 0] - z.front_x_m
@@ -145,7 +146,9 @@ def probe_drive(kind: str, seed: int, minutes: float, extra: dict, meets: list[f
                 np.abs(pts[:, 1]) <= z.half_width_m + 0.5)
             if not corr.any():
                 continue
-            wp = c + dirs * np.nan_to_num(r)[:, None]          # where each beam hit
+            c, _, rb = f._sensor_pose(g.mount)                 # where each beam hit
+            dirs = (rb @ np.stack([np.cos(ang), np.sin(ang), np.zeros_like(ang)])).T
+            wp = c + dirs * np.nan_to_num(r)[:, None]
             wx, wy = wp[:, 0].astype(np.float32), wp[:, 1].astype(np.float32)
             _, mat = world.height(wx, wy)
             mat = np.where(corr, mat, -1)

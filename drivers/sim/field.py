@@ -167,8 +167,11 @@ class SimField:
             view_out.append(v)
         return DepthFrame(int(stamp_ns), int(seq), colour, depth, cal)
 
-    def render_laser(self, stamp_ns: int, seq: int) -> LaserScan:
-        g = self.laser_geometry
+    def render_laser(self, stamp_ns: int, seq: int, geometry: LaserGeometry | None = None,
+                     sensor: int = 4) -> LaserScan:
+        """The field's laser scan; ``geometry`` another scanner's (a second laser, mounted
+        elsewhere: tools/tilted_laser_probe.py), ``sensor`` its own noise stream."""
+        g = geometry or self.laser_geometry
         if g is None:
             raise ValueError("this SimField has no laser")
         c, _, rb = self._sensor_pose(g.mount)
@@ -176,7 +179,7 @@ class SimField:
         dirs = (rb @ np.stack([np.cos(a), np.sin(a), np.zeros_like(a)])).T
         ranges = cast_laser(self.world, c, dirs, g.range_max_m)
         # range noise (~1 cm), a return must be beyond the minimum range
-        noise = self._rng(seq, 4).standard_normal(ranges.shape).astype(np.float32) * 0.01
+        noise = self._rng(seq, sensor).standard_normal(ranges.shape).astype(np.float32) * 0.01
         ranges = np.where(ranges > 0.05, ranges + noise, np.nan).astype(np.float32)
         return LaserScan(int(stamp_ns), int(seq), ranges, g)
 
