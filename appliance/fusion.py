@@ -18,6 +18,13 @@ from appliance.config import GridConfig
 from hal.types import VehicleState
 
 
+def _cells(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.nonzero`` of a 2-D bool mask (the same indices in the same order), through its
+    flat indices: several times faster on the grid's 96 k cells."""
+    ix, iy = np.divmod(np.flatnonzero(mask), mask.shape[1])
+    return ix, iy
+
+
 class GridFusion:
     def __init__(self, config: GridConfig | None = None):
         self.cfg = config or GridConfig()
@@ -95,7 +102,9 @@ class GridFusion:
             self.recur = self._move(self.recur, a, b)
 
     def _move(self, grid: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        ix, iy = np.nonzero(grid)
+        # np.nonzero of the float grid is ~10x slower than flatnonzero of its != 0 (a
+        # one-dimensional bool fast path): the same cells in the same order
+        ix, iy = _cells(grid != 0)
         if not len(ix):
             return grid
         vals = grid[ix, iy]
@@ -177,7 +186,7 @@ class GridFusion:
         return out
 
     def occupied(self) -> np.ndarray:
-        ix, iy = np.nonzero(self.evidence >= self.cfg.occupied_at - 1e-6)
+        ix, iy = _cells(self.evidence >= self.cfg.occupied_at - 1e-6)
         return self.centres(ix, iy)
 
     def occupied_mask(self) -> np.ndarray:

@@ -220,3 +220,14 @@ def test_the_cells_the_tracks_and_the_truth_use_the_same_zone_test():
     # the truth side of eval
     truth = [{"x_m": p[0], "y_m": p[1], "length_m": cell, "width_m": cell} for p in xy]
     assert [_rect_intersects(o, stop_rect) for o in truth] == want_stop.tolist()
+
+
+def test_grid_cells_helper_is_nonzero():
+    """The grid's fast cell listing gives np.nonzero's indices in np.nonzero's order."""
+    from appliance.fusion import _cells
+    rng = np.random.default_rng(5)
+    for frac in (0.0, 0.01, 0.5, 1.0):
+        m = rng.random((320, 300)) < frac
+        ix, iy = _cells(m)
+        rx, ry = np.nonzero(m)
+        assert np.array_equal(ix, rx) and np.array_equal(iy, ry)

@@ -559,3 +559,17 @@ def test_pad_left_matches_the_leftmost_columns():
     boxed, _ = disparity_regions(m, left, right, [(0, 0, 80, H)], ranges=[(8, 32)],
                                  pad_left=True)
     assert (np.abs(boxed[10:110, 30:64] - d_true) <= 1.0).mean() > 0.9
+
+
+def test_row_counts_equal_the_sum_over_each_row():
+    """vertical_support counts its 8 samples per point by the population count of each row's
+    64-bit word: the same counts as the sum, for 8 columns (contiguous or not) and any other
+    shape (the sum)."""
+    from appliance.perception.stereo import _row_counts
+    rng = np.random.default_rng(3)
+    for shape in [(0, 8), (1, 8), (997, 8), (40, 5), (9, 16)]:
+        b = rng.random(shape) < 0.4
+        assert np.array_equal(_row_counts(b), b.sum(axis=1))
+        t = np.ascontiguousarray(b.T).T                  # the same values, not C-contiguous
+        assert np.array_equal(_row_counts(t), b.sum(axis=1))
+    assert np.array_equal(_row_counts(np.ones((3, 8), bool)), [8, 8, 8])

@@ -616,6 +616,16 @@ def drop_dark(disp: np.ndarray, left: np.ndarray, level: float, win: int = 7) ->
     return disp
 
 
+def _row_counts(b: np.ndarray) -> np.ndarray:
+    """``b.sum(axis=1)`` (int64) of a 2-D bool array. With 8 columns each row is one 64-bit
+    word of 0/1 bytes and its count is the word's population count (numpy >= 2): ~15x faster
+    than the sum over the short axis (vertical support's 8 samples of every obstacle point)."""
+    if b.ndim == 2 and b.shape[1] == 8 and hasattr(np, "bitwise_count"):
+        w = np.ascontiguousarray(b).view(np.uint64).reshape(-1)
+        return np.bitwise_count(w).astype(np.int64)
+    return b.sum(axis=1)
+
+
 def vertical_support(disp: np.ndarray, px: np.ndarray, pts: np.ndarray, calib, ground,
                      samples: int = 8, tol_px: float = 1.5, tol_frac: float = 0.08,
                      vehicle=None, use_attitude: bool = False,
@@ -651,8 +661,8 @@ def vertical_support(disp: np.ndarray, px: np.ndarray, pts: np.ndarray, calib, g
     ds = disp[rows, u[:, None]]
     known = ds > 0
     agree = known & (np.abs(ds - d0) <= np.maximum(tol_px, tol_frac * d0))
-    nk = known.sum(axis=1)
-    sup = np.where(nk >= 2, agree.sum(axis=1) / np.maximum(nk, 1), 1.0)
+    nk = _row_counts(known)
+    sup = np.where(nk >= 2, _row_counts(agree) / np.maximum(nk, 1), 1.0)
     if known_min > 0:
         sup = np.where(nk >= known_min * samples, sup, 0.0)
     return sup
