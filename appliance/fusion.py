@@ -113,7 +113,14 @@ class GridFusion:
         nj = np.floor(nij[1] + 0.5)
         ok = (ni >= 0) & (ni < self.nx) & (nj >= 0) & (nj < self.ny)
         out = np.zeros_like(grid)
-        np.maximum.at(out, (ni[ok].astype(np.int64), nj[ok].astype(np.int64)), vals[ok])
+        ii, jj, vv = ni[ok].astype(np.int64), nj[ok].astype(np.int64), vals[ok]
+        lin = ii * grid.shape[1] + jj
+        if len(lin) < 2 or bool(np.all(lin[1:] > lin[:-1])):
+            # no two cells land together (driving straight: a shift keeps the cells' order):
+            # a plain assignment is what maximum.at would give, without its cost
+            out.ravel()[lin] = vv
+        else:
+            np.maximum.at(out, (ii, jj), vv)
         return out
 
     # -- update -----------------------------------------------------------------------------
