@@ -216,42 +216,42 @@ class SimField:
             cams.append(("stereo", c, r, sc.camera, STEREO_RANGE_M))
         return cams
 
+    # where _visible looks on an obstacle: across its footprint (fractions of its length and
+    # width, about its centre; the diagonals at 0.35 so they stay inside a round one) ...
+    _FOOT = ((0.0, 0.0), (0.45, 0.0), (-0.45, 0.0), (0.0, 0.45), (0.0, -0.45),
+             (0.35, 0.35), (0.35, -0.35), (-0.35, 0.35), (-0.35, -0.35))
+    # ... and up it (fractions of its height)
+    _UP = (0.15, 0.5, 0.85, 0.97)
+
     def _visible(self, k: int, cams) -> bool:
-        """Centre within range of a camera and its axis (at some height) inside that camera's
-        image, and at least one of a few points on the obstacle (its axis at several heights,
-        its left and right edges) inside the image with a clear line of sight past the ground
-        and the other obstacles (stubble is not counted as hiding anything)."""
+        """The run format's "obstacles that at least one of the run's cameras can see" (a fully
+        hidden one is left out, so a partly visible one is listed): at least one of 36 points
+        on the obstacle (nine across its footprint, ``_FOOT``, at four heights, ``_UP``) inside
+        a camera's image, within that camera's range (the point's own depth), with a clear
+        line of sight past the ground and the other obstacles (stubble is not counted as
+        hiding anything).
+
+        Until the twentieth session the obstacle's centre had to be within range and its axis
+        inside the image: an obstacle at the edge of the view (its axis just outside), a near
+        box of which only the far edge of its top is in view, or one whose front face was
+        within the RGB-D camera's 5 m but its centre beyond, was left out, and what the box
+        found on it was scored a false positive."""
         o = self.world.obstacles[k]
+        yaw = math.radians(o.yaw_deg)
+        cy, sy = math.cos(yaw), math.sin(yaw)
+        pts = np.array([(o.x + a * o.length_m * cy - b * o.width_m * sy,
+                         o.y + a * o.length_m * sy + b * o.width_m * cy, o.z0 + fz * o.height_m)
+                        for fz in self._UP for a, b in self._FOOT])
         for _name, c, r, cal, (rmin, rmax) in cams:
-            centre = np.array([o.x, o.y, o.z0 + 0.5 * min(o.height_m, 2.0)])
-            zc = float(r[:, 2] @ (centre - c))
-            if not rmin <= zc <= rmax:
-                continue
-            # points: the axis, and the two edges as seen from the camera
-            to = centre[:2] - c[:2]
-            n = np.array([-to[1], to[0]]) / max(np.linalg.norm(to), 1e-6)
-            half = 0.45 * min(o.length_m, o.width_m) if o.shape not in ("vehicle",) \
-                else 0.45 * o.length_m
-            pts = []
-            for fz in (0.15, 0.5, 0.85, 0.97):
-                pts.append((o.x, o.y, o.z0 + fz * o.height_m))
-            for sgn in (-1, 1):
-                pts.append((o.x + sgn * half * n[0], o.y + sgn * half * n[1],
-                            o.z0 + 0.5 * o.height_m))
-            inside = []
-            for p in pts:
-                p = np.asarray(p, float)
-                q = r.T @ (p - c)
-                ok = q[2] > 0.05
-                if ok:
-                    u = cal.fx * q[0] / q[2] + cal.cx
-                    v = cal.fy * q[1] / q[2] + cal.cy
-                    ok = 0 <= u < cal.width and 0 <= v < cal.height
-                inside.append(ok)
-            if not any(inside[:4]):          # the centre (axis) must be in the field of view
-                continue
-            for p, ok in zip(pts, inside):
-                if ok and self._line_of_sight(c, np.asarray(p, float), k):
+            q = (pts - c) @ r                                # optical frame, one row a point
+            z = np.where(q[:, 2] > 0.05, q[:, 2], np.nan)
+            with np.errstate(invalid="ignore"):
+                u = cal.fx * q[:, 0] / z + cal.cx
+                v = cal.fy * q[:, 1] / z + cal.cy
+                ok = ((z >= rmin) & (z <= rmax) & (u >= 0) & (u < cal.width) & (v >= 0)
+                      & (v < cal.height))
+            for j in np.flatnonzero(ok):
+                if self._line_of_sight(c, pts[j], k):
                     return True
         return False
 
