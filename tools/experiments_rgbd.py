@@ -379,6 +379,9 @@ def cmd_variants(a) -> int:
         "misaligned depth +8 px": {"options": base, "shift_px": 8},
         "multi-frame voting (grid two-hit: occupied_at 1.4, decay 0.5)": {
             "options": base, "grid": {"occupied_at": 1.4, "decay": 0.5}},
+        "multi-frame voting + raised level surfaces at the image bottom only": {
+            "options": {**base, "raised_surfaces": True, "raised_bottom_only": True},
+            "grid": {"occupied_at": 1.4, "decay": 0.5}},
     }
     if a.mog_model:
         variants["mixture of Gaussians colour (--mog-model)"] = {
