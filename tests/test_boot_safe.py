@@ -199,3 +199,27 @@ def test_pipelines_load_and_save_through_the_state_directory(tmp_path, caplog):
     assert "not saved" in caplog.text
     for x in (p, q, r, s):
         x.close()
+
+
+def test_near_search_ranges_a_person_standing_in_the_stop_zone():
+    """A person standing 3.0 m ahead of the vehicle origin (0.4 m beyond its front, 1.8 m from
+    the camera) is nearer than min_depth_m (3 m): with the near search off no point lies
+    within 0.5 m of them (measured: 0; at 3.3 m, 7). With near_min_depth_m = 1.6 (the default)
+    the strips that see the near ground search far enough and their points lie on the person
+    (measured: 17; 24 at 3.3 m)."""
+    from appliance.evaluation import footprint_distance
+    f = _person_at_boot(x=3.0, y=0.0)
+    s = f.render(0, 0)
+    ob = s.truth[0]
+
+    def near_points(**opts):
+        o = dataclasses.replace(StereoNoveltyConfig(), model_state="off", **opts)
+        pipe = StereoNoveltyPipeline(o, background=False)
+        det = pipe.process(SensorInputs(stamp_ns=s.stereo.stamp_ns, stereo=s.stereo,
+                                        vehicle=s.vehicle))
+        pipe.close()
+        xy = np.asarray(det.points_xy, float).reshape(-1, 2)
+        return int((footprint_distance(xy, ob) <= 0.5).sum()) if len(xy) else 0
+
+    assert near_points(near_min_depth_m=0.0) == 0          # off: the search ends at 3 m
+    assert near_points() >= 10                              # the default: 1.6 m

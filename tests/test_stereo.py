@@ -207,6 +207,37 @@ def test_strips_cover_the_box_with_their_own_ranges():
     assert boxes[-1][3] <= 470                        # rows with an empty range are dropped
 
 
+
+def test_near_search_reaches_a_wall_in_the_stop_zone_only_from_strips_that_see_near_ground():
+    """near_min_depth_m: a wall standing 3.0 m ahead of the vehicle origin (1.8 m from the
+    camera: nearer than min_depth_m's 3 m) is beyond the default search (the range stops at
+    nd); with nd_near the strips whose own last row sees ground nearer than nd reaches search
+    far enough to hold its disparity, and strips that do not see near ground keep nd."""
+    c = _calib(0.5)
+    nd = auto_disparities(StereoConfig(), c.camera.fx, c.baseline_m)
+    fb = c.camera.fx * c.baseline_m
+    nd_near = int(np.ceil(fb / 1.6 / 16.0)) * 16
+    assert nd_near > nd
+    wall = _plane_disparity(c, wall_x=3.0)
+    box = (250, 200, 390, 512)                        # the wall down to the image bottom
+    w = wall[200:512, 250:390]
+    assert w.max() > nd                               # the default cannot reach it
+    b0, r0 = strip_boxes(c, [box], nd, strip_rows=64, near_from_foot=True, foot_row=511)
+    assert all(dm + n <= nd for dm, n in r0)
+    b1, r1 = strip_boxes(c, [box], nd, strip_rows=64, near_from_foot=True, foot_row=511,
+                         nd_near=nd_near)
+    for (x0, y0, x1, y1), (dm, n) in zip(b1, r1):
+        seg = wall[y0:y1, x0:x1]
+        if dm + n > nd:                               # an extended strip holds the wall
+            assert dm <= seg.min() and seg.max() < dm + n
+    assert any(dm + n > nd for dm, n in r1)
+    # a strip high in the image (its own last row sees ground beyond min_depth_m) keeps nd
+    b2, r2 = strip_boxes(c, [(250, 150, 390, 214)], nd, strip_rows=64, near_from_foot=True,
+                         foot_row=511, nd_near=nd_near)
+    assert all(dm + n <= nd for dm, n in r2)
+    assert (ground_search_range(c, box, nd, foot_row=511, nd_near=nd_near)[1]
+            > ground_search_range(c, box, nd, foot_row=511)[1])
+
 def test_matching_resolution_and_scaled_calibration():
     assert match_factor(1280, 640) == 2 and match_factor(640, 640) == 1
     assert match_factor(1281, 640) == 4 and match_factor(1280, 0) == 1

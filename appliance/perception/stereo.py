@@ -437,7 +437,8 @@ def _ground_depth(calib, us, vs, roll: float, pitch: float, ground_m: float) -> 
 def ground_search_range(calib, box: tuple[int, int, int, int], nd: int, vehicle=None,
                         ground_slack_m: float = 0.3, pitch_slack_deg: float = 3.0,
                         margin_px: int = 2, foot_row: int | None = None,
-                        seen_max_disp: float = 0.0) -> tuple[int, int]:
+                        seen_max_disp: float = 0.0, nd_near: int | None = None
+                        ) -> tuple[int, int]:
     """``(d_min, n)`` for a box (pixels of ``calib``'s image).
 
     Far end: disparities below ``d_min`` lie beyond the ground plane for every ray of the box,
@@ -453,6 +454,9 @@ def ground_search_range(calib, box: tuple[int, int, int, int], nd: int, vehicle=
     box by another measurement (a coarse stereo pass); the near end is never below it, so an
     obstacle whose foot is outside the region (an overhang, an unlit lower part) that the
     coarse pass saw is still searched.
+
+    ``nd_near`` (>= ``nd``; with ``foot_row``): the near end found from the foot may go up to
+    this many disparities instead of ``nd`` (ground seen nearer than ``min_depth_m``).
 
     ``n`` is a multiple of 16 and ``[d_min, d_min + n)`` covers the range found; ``n = 0`` when
     the range is empty."""
@@ -471,7 +475,8 @@ def ground_search_range(calib, box: tuple[int, int, int, int], nd: int, vehicle=
         z_near = min(_ground_depth(calib, [x0, x1 - 1], [foot_row, foot_row], roll,
                                    pitch + slack, ground_slack_m))
         if math.isfinite(z_near) and z_near > 0:
-            dmax = min(nd, max(int(math.ceil(fb / z_near)), int(math.ceil(seen_max_disp)))
+            dmax = min(max(nd, nd_near or nd),
+                       max(int(math.ceil(fb / z_near)), int(math.ceil(seen_max_disp)))
                        + margin_px)
     if dmin >= dmax:
         return dmin, 0
@@ -482,23 +487,40 @@ def ground_search_range(calib, box: tuple[int, int, int, int], nd: int, vehicle=
 def strip_boxes(calib, boxes, nd: int, vehicle=None, strip_rows: int = 64,
                 ground_slack_m: float = 0.3, pitch_slack_deg: float = 3.0,
                 near_from_foot: bool = False, foot_row: int | None = None,
-                seen_max_disp: float = 0.0):
+                seen_max_disp: float = 0.0, nd_near: int | None = None):
     """Split boxes into horizontal strips of ``strip_rows`` with the search range of each
     (:func:`ground_search_range`; lower strips see nearer ground, so a narrower range; with
     ``near_from_foot`` the box's last row, or ``foot_row``, is the foot row of every strip).
+    ``nd_near`` (> ``nd``, with ``near_from_foot``): a strip whose own last row sees ground
+    nearer than ``nd`` reaches may search up to ``nd_near`` (:func:`ground_search_range`).
     Strips with an
     empty range are dropped and neighbouring strips of one box with the same range are
     joined. Returns (boxes, ranges)."""
     out_b, out_r = [], []
+    near = near_from_foot and nd_near is not None and nd_near > nd
+    if near:
+        roll = pitch = 0.0
+        if vehicle is not None:
+            roll, pitch = float(vehicle.roll_rad), float(vehicle.pitch_rad)
+        fb = calib.camera.fx * calib.baseline_m
     for (x0, y0, x1, y1) in boxes:
         prev = None
         step = strip_rows if strip_rows > 0 else max(1, y1 - y0)
         for ys in range(y0, y1, step):
             ye = min(y1, ys + step)
+            nn = None
+            if near:
+                # only a strip whose own last row sees ground nearer than nd reaches (the
+                # ground slack and nose-down pitch slack of the near end) searches nearer
+                z = min(_ground_depth(calib, [x0, x1 - 1], [ye - 1, ye - 1], roll,
+                                      pitch + math.radians(pitch_slack_deg), ground_slack_m))
+                if math.isfinite(z) and z > 0 and fb / z > nd:
+                    nn = nd_near
             r = ground_search_range(calib, (x0, ys, x1, ye), nd, vehicle, ground_slack_m,
                                     pitch_slack_deg,
                                     foot_row=(y1 - 1 if foot_row is None else foot_row)
-                                    if near_from_foot else None, seen_max_disp=seen_max_disp)
+                                    if near_from_foot else None, seen_max_disp=seen_max_disp,
+                                    nd_near=nn)
             if r[1] == 0:
                 prev = None
                 continue

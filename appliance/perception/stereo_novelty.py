@@ -112,6 +112,17 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
                                          "the nearest coarse depth seen in it (without the "
                                          "coarse pass this check is off: full near range)")
     cue_dilate_cells: int = _f(0, lo=0, hi=10, doc="cue: dilation of its cells")
+    # Default since the twentieth session (measured on training seeds, then checked against a
+    # rule written before acceptance seeds 1001-1002: docs/front-end.md "The near search")
+    near_min_depth_m: float = _f(1.6, lo=0.0, hi=100.0,
+                                 doc="near_from_foot: a strip whose own last row sees "
+                                     "ground nearer than min_depth_m searches down to this "
+                                     "z-depth (more disparities than num_disparities, only "
+                                     "there), so what stands in the stop zone's near part is "
+                                     "ranged; 0 = off (the search ends at min_depth_m)")
+    near_boot: bool = _f(False, doc="near_min_depth_m: the boot guard's full-frame pass "
+                                    "searches that near too (measured: its extra mismatches "
+                                    "keep far cells out of the first update, a lock-in)")
     near_margin: float = _f(1.15, lo=1.0, hi=4.0,
                             doc="near_from_foot: the coarse disparity seen is scaled by this "
                                 "(coarse depth is rough) before it bounds the search")
@@ -228,7 +239,8 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
 # Figure-5 / reproduction tables of docs/stereo-novelty.md: tools/experiments_stereo.py pins
 # them in its rows)
 PRE_ISSUE_14 = {"boot_guard": False, "pad_left": False, "support_min": 0.0, "uniqueness": 10,
-                "dark_level": 0.0, "support_known_min": 0.0, "stalk_max_width_m": 0.0}
+                "dark_level": 0.0, "support_known_min": 0.0, "stalk_max_width_m": 0.0,
+                "near_min_depth_m": 0.0}
 
 
 def rescale_mask(mask: np.ndarray, f: int, k: int, out_hw: tuple[int, int]) -> np.ndarray:
@@ -436,6 +448,14 @@ class StereoNoveltyPipeline(Pipeline):
         sub = disp[int(y0 // f):int(math.ceil(y1 / f)), int(x0 // f):int(math.ceil(x1 / f))]
         return float(sub.max()) * f * self.options.near_margin if sub.size else 0.0
 
+    def _near_disparities(self, calib, nd: int) -> int:
+        """``near_min_depth_m`` as a search range at ``calib``'s resolution (a multiple of 16,
+        at least ``nd``)."""
+        z = self.options.near_min_depth_m
+        if z <= 0:
+            return nd
+        return max(nd, int(math.ceil(calib.camera.fx * calib.baseline_m / z / 16.0)) * 16)
+
     def _boxes(self, cam_mask: np.ndarray, f: int, full_hw: tuple[int, int], k: int, calib_k,
                nd: int, vehicle):
         """Boxes (at matching resolution, 1/k) covering the mask (at 1/``f`` of the camera's
@@ -484,7 +504,8 @@ class StereoNoveltyPipeline(Pipeline):
                 bb, rr = strip_boxes(calib_k, [bx], nd, vehicle, o.strip_rows,
                                      o.ground_slack_m, o.pitch_slack_deg,
                                      o.near_from_foot and seen is not None, foot_row=foot,
-                                     seen_max_disp=seen or 0.0)
+                                     seen_max_disp=seen or 0.0,
+                                     nd_near=self._near_disparities(calib_k, nd))
                 region_b += bb
                 region_r += rr
             if o.merge_bands:
@@ -634,7 +655,9 @@ class StereoNoveltyPipeline(Pipeline):
         matcher = self._stereo.matcher_for(calib)
         left, right = self._pair_for(fr, k, matcher)
         h, w = left.shape[:2]
+        nb = matcher.nd if not o.near_boot else self._near_disparities(calib, matcher.nd)
         disp, _ = disparity_regions(matcher, left, right, [(0, 0, w, h)],
+                                    None if nb == matcher.nd else [(0, nb)],
                                     pad_left=o.pad_left)
         drop_dark(disp, left, o.dark_level)
         pts, px = points_from_disparity(disp, calib, None, max(1, o.point_stride // k), vehicle,
