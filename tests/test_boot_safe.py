@@ -203,8 +203,8 @@ def test_pipelines_load_and_save_through_the_state_directory(tmp_path, caplog):
 
 def test_near_search_ranges_a_person_standing_in_the_stop_zone():
     """A person standing 3.0 m ahead of the vehicle origin (0.4 m beyond its front, 1.8 m from
-    the camera) is nearer than min_depth_m (3 m): with the near search off no point lies
-    within 0.5 m of them (measured: 0; at 3.3 m, 7). With near_min_depth_m = 1.6 (the default)
+    the camera) is nearer than min_depth_m (3 m): with the near search off (the default) no
+    point lies within 0.5 m of them (measured: 0; at 3.3 m, 7). With near_min_depth_m = 1.6
     the strips that see the near ground search far enough and their points lie on the person
     (measured: 17; 24 at 3.3 m)."""
     from appliance.evaluation import footprint_distance
@@ -221,5 +221,5 @@ def test_near_search_ranges_a_person_standing_in_the_stop_zone():
         xy = np.asarray(det.points_xy, float).reshape(-1, 2)
         return int((footprint_distance(xy, ob) <= 0.5).sum()) if len(xy) else 0
 
-    assert near_points(near_min_depth_m=0.0) == 0          # off: the search ends at 3 m
-    assert near_points() >= 10                              # the default: 1.6 m
+    assert near_points() == 0                               # off (default): ends at 3 m
+    assert near_points(near_min_depth_m=1.6) >= 10
