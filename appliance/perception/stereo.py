@@ -455,8 +455,9 @@ def ground_search_range(calib, box: tuple[int, int, int, int], nd: int, vehicle=
     obstacle whose foot is outside the region (an overhang, an unlit lower part) that the
     coarse pass saw is still searched.
 
-    ``nd_near`` (>= ``nd``; with ``foot_row``): the near end found from the foot may go up to
-    this many disparities instead of ``nd`` (ground seen nearer than ``min_depth_m``).
+    ``nd_near`` (> ``nd``; with ``foot_row``): when the box's own last row sees ground nearer
+    than ``nd`` reaches (with the near end's slack), the near end found from the foot may go
+    up to this many disparities instead of ``nd``.
 
     ``n`` is a multiple of 16 and ``[d_min, d_min + n)`` covers the range found; ``n = 0`` when
     the range is empty."""
@@ -472,11 +473,16 @@ def ground_search_range(calib, box: tuple[int, int, int, int], nd: int, vehicle=
     dmin = 0 if not math.isfinite(z_far) else max(0, int(math.floor(fb / z_far)) - margin_px)
     dmax = nd
     if foot_row is not None:
+        cap = nd
+        if nd_near is not None and nd_near > nd:
+            z_own = min(_ground_depth(calib, [x0, x1 - 1], [y1 - 1, y1 - 1], roll,
+                                      pitch + slack, ground_slack_m))
+            if math.isfinite(z_own) and z_own > 0 and fb / z_own > nd:
+                cap = nd_near
         z_near = min(_ground_depth(calib, [x0, x1 - 1], [foot_row, foot_row], roll,
                                    pitch + slack, ground_slack_m))
         if math.isfinite(z_near) and z_near > 0:
-            dmax = min(max(nd, nd_near or nd),
-                       max(int(math.ceil(fb / z_near)), int(math.ceil(seen_max_disp)))
+            dmax = min(cap, max(int(math.ceil(fb / z_near)), int(math.ceil(seen_max_disp)))
                        + margin_px)
     if dmin >= dmax:
         return dmin, 0
@@ -497,30 +503,16 @@ def strip_boxes(calib, boxes, nd: int, vehicle=None, strip_rows: int = 64,
     empty range are dropped and neighbouring strips of one box with the same range are
     joined. Returns (boxes, ranges)."""
     out_b, out_r = [], []
-    near = near_from_foot and nd_near is not None and nd_near > nd
-    if near:
-        roll = pitch = 0.0
-        if vehicle is not None:
-            roll, pitch = float(vehicle.roll_rad), float(vehicle.pitch_rad)
-        fb = calib.camera.fx * calib.baseline_m
     for (x0, y0, x1, y1) in boxes:
         prev = None
         step = strip_rows if strip_rows > 0 else max(1, y1 - y0)
         for ys in range(y0, y1, step):
             ye = min(y1, ys + step)
-            nn = None
-            if near:
-                # only a strip whose own last row sees ground nearer than nd reaches (the
-                # ground slack and nose-down pitch slack of the near end) searches nearer
-                z = min(_ground_depth(calib, [x0, x1 - 1], [ye - 1, ye - 1], roll,
-                                      pitch + math.radians(pitch_slack_deg), ground_slack_m))
-                if math.isfinite(z) and z > 0 and fb / z > nd:
-                    nn = nd_near
             r = ground_search_range(calib, (x0, ys, x1, ye), nd, vehicle, ground_slack_m,
                                     pitch_slack_deg,
                                     foot_row=(y1 - 1 if foot_row is None else foot_row)
                                     if near_from_foot else None, seen_max_disp=seen_max_disp,
-                                    nd_near=nn)
+                                    nd_near=nd_near)
             if r[1] == 0:
                 prev = None
                 continue

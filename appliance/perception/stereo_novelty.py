@@ -485,6 +485,7 @@ class StereoNoveltyPipeline(Pipeline):
             return [(sc(x0, w), sc(y0, h), scu(x1, w, W // g * g), scu(y1, h, H // g * g))
                     for (x0, y0, x1, y1) in regions], None, None
         bw = max(1, (o.band_cols * k) // g) if o.band_cols > 0 else None
+        nd_near = self._near_disparities(calib_k, nd)
         boxes, ranges = [], []
         parts = [] if o.merge_bands else None
         for (x0, y0, x1, y1) in regions:
@@ -507,8 +508,7 @@ class StereoNoveltyPipeline(Pipeline):
                 bb, rr = strip_boxes(calib_k, [bx], nd, vehicle, o.strip_rows,
                                      o.ground_slack_m, o.pitch_slack_deg,
                                      o.near_from_foot and seen is not None, foot_row=foot,
-                                     seen_max_disp=seen or 0.0,
-                                     nd_near=self._near_disparities(calib_k, nd))
+                                     seen_max_disp=seen or 0.0, nd_near=nd_near)
                 region_b += bb
                 region_r += rr
             if o.merge_bands:
