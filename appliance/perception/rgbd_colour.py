@@ -20,6 +20,7 @@ covariance is singular; a small ridge is added), which is why it does worse ther
 """
 from __future__ import annotations
 
+import sys
 import threading
 from dataclasses import dataclass
 
@@ -122,6 +123,11 @@ class ColourClassifier:
 
     def _build_and_set(self) -> None:
         lut = self._build_lut()
+        if self.lut_bits == 8:
+            # the exact table indexed R<<16 | G<<8 | B: a BGRA pixel read as one little-endian
+            # 32-bit word is that index plus the alpha byte (classify_image: one conversion and
+            # one mask instead of three strided channel reads, ~0.5 ms less a 640x480 frame)
+            lut = np.ascontiguousarray(lut.reshape(256, 256, 256).transpose(2, 1, 0)).ravel()
         if len(_LUT_CACHE) > 8:
             _LUT_CACHE.clear()
         _LUT_CACHE[self._key] = lut
@@ -163,6 +169,17 @@ class ColourClassifier:
                 .reshape(img.shape[:2])
         bits = self.lut_bits
         c = np.asarray(bgr, np.uint8)
+        if bits == 8 and sys.byteorder == "little":
+            v = cv2.cvtColor(np.ascontiguousarray(c), cv2.COLOR_BGR2BGRA).view(np.uint32)[..., 0]
+            np.bitwise_and(v, np.uint32(0xFFFFFF), out=v)
+            return np.take(self._lut, v).astype(np.int16)
+        if bits == 8:                                   # (the table is in R, G, B order)
+            idx = c[..., 2].astype(np.int32)
+            idx <<= 8
+            idx |= c[..., 1]
+            idx <<= 8
+            idx |= c[..., 0]
+            return self._lut[idx].astype(np.int16)
         if bits < 8:
             c = c >> np.uint8(8 - bits)
         idx = c[..., 0].astype(np.int32)
