@@ -666,3 +666,14 @@ def test_real_frames_floor_is_low_slope_furniture_is_steep(name, scale, fy, cy, 
         s = s[np.isfinite(s)]
         assert np.median(s) > 50 and np.mean(s > 40) > 0.6, (what, np.median(s))
         assert res.suspected[r, c].mean() > 0.6, what
+
+
+@pytest.mark.parametrize("n_classes", [3, 300])
+def test_not_traversable_is_the_class_table_per_pixel(n_classes):
+    # an OpenCV byte table when the classes fit one, a gather otherwise: both are the table
+    rng = np.random.default_rng(n_classes)
+    cmap = rng.integers(NOT_CLASSIFIED, n_classes, (48, 64)).astype(np.int16)
+    trav = [0, 2, n_classes - 1]
+    want = np.array([[c not in trav for c in row] for row in cmap.tolist()])
+    assert np.array_equal(not_traversable(cmap, trav), want)
+    assert not_traversable(cmap, []).all()

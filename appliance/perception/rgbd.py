@@ -631,7 +631,7 @@ class RgbdPipeline(Pipeline):
             # far end of the path, the cover), not a shiny obstacle standing in range
             surface = surface & (depth < np.float32(o.hole_max_range_m))
         if cfull is not None:
-            cmap = np.where(hole, cfull, np.int16(NOT_CLASSIFIED))
+            cmap = cfull                   # (only the holes' classes count: masked below)
         else:
             cmap = np.full(hole.shape, NOT_CLASSIFIED, np.int16)
             cmap[hole] = self.colour.classify(colour_features(color[hole], o.colour_space))

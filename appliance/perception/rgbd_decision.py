@@ -146,7 +146,7 @@ def not_traversable(class_map: np.ndarray, traversable_idx: list[int]) -> np.nda
     if not traversable_idx:
         return np.ones(class_map.shape, bool)
     n = int(max(max(traversable_idx), int(class_map.max()) if class_map.size else 0)) + 1
-    return class_lut(traversable_idx, n)[class_map.astype(np.intp) + 2]
+    return _apply(class_lut(traversable_idx, n), class_map)
 
 
 @dataclass(frozen=True)
