@@ -52,6 +52,79 @@ def test_confidence_grows_with_support():
     assert cluster_candidates(few, hf)[0].confidence < cluster_candidates(many, hm)[0].confidence
 
 
+def _reference_candidates(xy, h, conf, flags, cell_m=0.2, min_points=3, contact_m=0.8,
+                          max_range_m=60.0):
+    """The module's rules written plainly (a dict of cells, a flood fill over the dilated
+    occupancy, each cluster's heights sorted): what the vectorised code must give."""
+    xy = np.asarray(xy, float)
+    ok = np.isfinite(xy).all(1) & (np.abs(xy) <= max_range_m).all(1)
+    idx = np.flatnonzero(ok)
+    if len(idx) < min_points:
+        return []
+    cells = {}
+    for i in idx:
+        cells.setdefault(tuple(np.floor(xy[i] / cell_m).astype(int)), []).append(i)
+    # components of the cells where a gap of one empty cell still joins (the 3x3 dilation)
+    grown = {(a + da, b + db) for a, b in cells for da in (-1, 0, 1) for db in (-1, 0, 1)}
+    comp, k = {}, 0
+    for c0 in sorted(grown):
+        if c0 in comp:
+            continue
+        k += 1
+        stack = [c0]
+        comp[c0] = k
+        while stack:
+            a, b = stack.pop()
+            for da in (-1, 0, 1):
+                for db in (-1, 0, 1):
+                    n = (a + da, b + db)
+                    if n in grown and n not in comp:
+                        comp[n] = k
+                        stack.append(n)
+    groups = {}
+    for c, pts in cells.items():
+        groups.setdefault(comp[c], []).extend(pts)
+    out = []
+    for pts in groups.values():
+        pts = np.array(sorted(pts))
+        n = len(pts)
+        if n < min_points:
+            continue
+        p = xy[pts]
+        hs = np.sort(h[pts])
+        c = 1.0 if conf is None else float(np.clip(conf[pts], 0, 1).mean())
+        src = ("geometry",) + tuple(name for name, f in flags.items() if f[pts].sum() >= 0.2 * n)
+        out.append(dict(points=n, x=(p[:, 0].min() + p[:, 0].max()) / 2,
+                        y=(p[:, 1].min() + p[:, 1].max()) / 2,
+                        length=max(np.ptp(p[:, 0]), cell_m), width=max(np.ptp(p[:, 1]), cell_m),
+                        height=hs[int(round(0.95 * (n - 1)))],
+                        contact=bool(hs[int(round(0.05 * (n - 1)))] <= contact_m),
+                        conf=c * (1 - np.exp(-n / 10.0)), sources=src))
+    return out
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_clusters_agree_with_a_plain_reference(seed):
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(20, 1500))
+    xy = np.concatenate([rng.normal(rng.uniform(-8, 8, 2), rng.uniform(0.1, 3), (n, 2)),
+                         rng.uniform(-70, 70, (5, 2))])       # some beyond max_range_m
+    xy[rng.integers(0, len(xy), 3)] = np.nan
+    h = np.round(rng.uniform(-0.3, 2.0, len(xy)), 1)          # ties between heights
+    conf = rng.uniform(0, 1.2, len(xy)) if seed % 2 else None
+    flags = {"novelty": rng.random(len(xy)) < 0.3}
+    got = cluster_candidates(xy, h, conf, flags, min_points=3, max_candidates=10_000)
+    want = _reference_candidates(xy, h, conf, flags)
+    assert len(got) == len(want) > 0
+    key = lambda d: (d["points"], d["x"], d["y"])            # noqa: E731
+    for c, w in zip(sorted(got, key=lambda c: (c.points, c.x_m, c.y_m)), sorted(want, key=key)):
+        assert (c.points, c.sources, c.ground_contact) == (w["points"], w["sources"], w["contact"])
+        assert c.height_m == w["height"]
+        assert np.allclose([c.x_m, c.y_m, c.length_m, c.width_m], [w["x"], w["y"], w["length"],
+                                                                   w["width"]], rtol=0, atol=1e-12)
+        assert abs(c.confidence - w["conf"]) <= 5e-5          # (rounded to 4 places)
+
+
 def test_laser_pipeline_gives_a_candidate_per_object():
     from appliance.perception import SensorInputs
     from appliance.perception.laser import LaserPipeline

@@ -40,54 +40,64 @@ def cluster_candidates(xy: np.ndarray, height: np.ndarray | None = None,
     n = len(p)
     if n == 0:
         return ()
-    ok = np.all(np.isfinite(p), axis=1) & (np.abs(p[:, 0]) <= max_range_m) & (
-        np.abs(p[:, 1]) <= max_range_m)
-    idx = np.flatnonzero(ok)
-    if len(idx) < min_points:
+    # (column by column: numpy's reductions along the short axis of an (N, 2) array are slow)
+    ax, ay = np.abs(p[:, 0]), np.abs(p[:, 1])
+    ok = (ax <= max_range_m) & (ay <= max_range_m)           # NaN compares False
+    if not np.isfinite(max_range_m):
+        ok &= np.isfinite(ax) & np.isfinite(ay)
+    idx = None if ok.all() else np.flatnonzero(ok)            # None: every point
+    if (n if idx is None else len(idx)) < min_points:
         return ()
-    p = p[idx]
-    h = None if height is None else np.asarray(height, np.float64).reshape(-1)[idx]
-    c = np.ones(len(p)) if confidence is None else np.clip(
-        np.asarray(confidence, np.float64).reshape(-1)[idx], 0.0, 1.0)
-    fl = {k: np.asarray(v, bool).reshape(-1)[idx] for k, v in (flags or {}).items()}
+
+    def pick(a, dtype):
+        a = np.asarray(a, dtype).reshape(-1)
+        return a if idx is None else a[idx]
+
+    if idx is not None:
+        p = p[idx]
+    h = None if height is None else pick(height, np.float64)
+    c = np.ones(len(p)) if confidence is None else np.clip(pick(confidence, np.float64),
+                                                            0.0, 1.0)
+    fl = {k: pick(v, bool) for k, v in (flags or {}).items()}
     g = np.floor(p / cell_m).astype(np.int64)
-    g0 = g.min(axis=0)
-    g -= g0 - join_cells
-    H, W = int(g[:, 0].max()) + 1 + join_cells, int(g[:, 1].max()) + 1 + join_cells
+    gx, gy = g[:, 0], g[:, 1]
+    gx -= gx.min() - join_cells
+    gy -= gy.min() - join_cells
+    H, W = int(gx.max()) + 1 + join_cells, int(gy.max()) + 1 + join_cells
     if H * W > 4_000_000:            # a pathological spread: coarser cells
         return cluster_candidates(xy, height, confidence, flags, base_sources, pipeline,
                                   cell_m * 2, join_cells, min_points, contact_m,
                                   support_points, source_min_share, max_range_m,
                                   max_candidates)
     occ = np.zeros((H, W), np.uint8)
-    occ[g[:, 0], g[:, 1]] = 1
+    occ[gx, gy] = 1
     grown = cv2.dilate(occ, np.ones((2 * join_cells + 1,) * 2, np.uint8)) if join_cells else occ
     nlab, lab = cv2.connectedComponents(grown, connectivity=8, ltype=cv2.CV_32S)
-    pl = lab[g[:, 0], g[:, 1]]
-    # one sort by (label, height): each label's points are a block, its heights in order
-    # (percentiles by rank), its sums and extents by reduceat: no per-cluster numpy calls
-    hk = np.zeros(len(p)) if h is None else h
-    order = np.lexsort((hk, pl))
+    pl = lab[gx, gy]
+    # one stable sort by label (a radix sort when the labels fit 16 bits): each label's points
+    # are a block, its sums and extents by reduceat: no per-cluster numpy calls but the two
+    # height ranks of the kept clusters (a partition of the block)
+    order = np.argsort(pl.astype(np.uint16) if nlab <= 1 << 16 else pl, kind="stable")
     pls = pl[order]
     starts = np.flatnonzero(np.r_[True, pls[1:] != pls[:-1]])
     labels = pls[starts]
     counts = np.diff(np.r_[starts, len(pls)])
-    po = p[order]
-    lo = np.stack([np.minimum.reduceat(po[:, 0], starts), np.minimum.reduceat(po[:, 1], starts)],
-                  axis=1)
-    hi = np.stack([np.maximum.reduceat(po[:, 0], starts), np.maximum.reduceat(po[:, 1], starts)],
-                  axis=1)
+    px, py = p[:, 0][order], p[:, 1][order]
+    lo = np.stack([np.minimum.reduceat(px, starts), np.minimum.reduceat(py, starts)], axis=1)
+    hi = np.stack([np.maximum.reduceat(px, starts), np.maximum.reduceat(py, starts)], axis=1)
     csum = np.add.reduceat(c[order], starts)
     fsum = {k: np.add.reduceat(v[order].astype(np.int64), starts) for k, v in fl.items()}
-    ho = hk[order]
+    ho = None if h is None else h[order]
     out = []
     for j in np.flatnonzero((counts >= min_points) & (labels > 0)):
         k = int(counts[j])
         s0 = starts[j]
         ext = np.maximum(hi[j] - lo[j], cell_m)
-        if h is not None:
-            top = float(ho[s0 + int(round(0.95 * (k - 1)))])
-            contact = bool(ho[s0 + int(round(0.05 * (k - 1)))] <= contact_m)
+        if ho is not None:
+            r_top, r_low = int(round(0.95 * (k - 1))), int(round(0.05 * (k - 1)))
+            blk = np.partition(ho[s0:s0 + k], (r_low, r_top))
+            top = float(blk[r_top])
+            contact = bool(blk[r_low] <= contact_m)
         else:
             top, contact = 0.0, True
         conf = float(csum[j]) / k * (1.0 - float(np.exp(-k / support_points)))
