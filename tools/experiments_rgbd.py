@@ -368,10 +368,10 @@ def cmd_variants(a) -> int:
         "- colour threshold 3.5 (colour_threshold = 3.5)": {
             "options": {**base, "colour_threshold": 3.5}},
         "+ opening of the candidates (open_px = 3)": {"options": {**base, "open_px": 3}},
-        "+ raised level surfaces (raised_surfaces = true)": {
-            "options": {**base, "raised_surfaces": True}},
-        "+ raised level surfaces at the image bottom only (raised_bottom_only = true)": {
-            "options": {**base, "raised_surfaces": True, "raised_bottom_only": True}},
+        "- raised level surfaces anywhere, not only at the image bottom (raised_bottom_only = "
+        "false)": {"options": {**base, "raised_bottom_only": False}},
+        "- no raised level surfaces (raised_surfaces = false)": {
+            "options": {**base, "raised_surfaces": False}},
         "colour only (texture = off)": {"options": {**base, "texture": "off"}},
         "exact colour per pixel (colour_lut_bits = 0), every pixel projected": {
             "options": {**base, "colour_lut_bits": 0, "project_stride_px": 1}},
@@ -379,8 +379,8 @@ def cmd_variants(a) -> int:
         "misaligned depth +8 px": {"options": base, "shift_px": 8},
         "multi-frame voting (grid two-hit: occupied_at 1.4, decay 0.5)": {
             "options": base, "grid": {"occupied_at": 1.4, "decay": 0.5}},
-        "multi-frame voting + raised level surfaces at the image bottom only": {
-            "options": {**base, "raised_surfaces": True, "raised_bottom_only": True},
+        "multi-frame voting, no raised level surfaces": {
+            "options": {**base, "raised_surfaces": False},
             "grid": {"occupied_at": 1.4, "decay": 0.5}},
     }
     if a.mog_model:

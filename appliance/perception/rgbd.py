@@ -114,11 +114,11 @@ class RgbdPipelineConfig(CueOptions):
                                          "ground the camera cannot see (paper: false)")
     min_height_m: float = _f(0.15, lo=0.0, hi=3.0, doc="a group must rise this high above the "
                                                        "ground plane (0 = any, paper)")
-    raised_surfaces: bool = _f(False, doc="level surfaces of no traversable colour between "
+    raised_surfaces: bool = _f(True, doc="level surfaces of no traversable colour between "
                                           "min_height_m and raised_max_height_m above the "
                                           "ground are obstacles (a box top seen from close)")
     raised_max_height_m: float = _f(2.0, lo=0.0, hi=10.0)
-    raised_bottom_only: bool = _f(False, doc="raised level surfaces count only where they reach "
+    raised_bottom_only: bool = _f(True, doc="raised level surfaces count only where they reach "
                                              "the image bottom (a near box's top)")
     open_px: int = _f(0, lo=0, hi=15, doc="opening of the obstacle candidates before grouping "
                                           "(0 = none, the paper)")
@@ -189,6 +189,7 @@ PAPER_RULE = {
     "contact_px": 1, "texture_contact_px": 0, "ground_max_height_m": 0.0, "ground_classes": (),
     "bottom_grounded": False, "min_height_m": 0.0, "holes": False,
     "ground_class_contact": False, "texture_min_pixels": 0,
+    "raised_surfaces": False, "raised_bottom_only": False,
 }
 
 
