@@ -106,6 +106,15 @@ class GridConfig:
                                    "recurrence (the laser too: a tuft top it grazes comes and "
                                    "goes; docs/proving-ground.md 'Tuft tops'); [\"laser\"] was "
                                    "the default before")
+    confirm_points: int = _f(0, lo=0, hi=1_000_000,
+                             doc="fewer frames when near and large (issue #14): the cells hit "
+                                 "by the points of a candidate with at least this many points "
+                                 "(of the pipelines in confirm_pipelines) are occupied at once, "
+                                 "without the second look (a STOP still needs stop_recur); "
+                                 "0 = off (docs/rgbd.md 'Large candidates at once')")
+    confirm_pipelines: tuple = _f(("rgbd",),
+                                  doc="confirm_points: the pipelines whose large candidates are "
+                                      "believed at once")
 
 
 @dataclass(frozen=True)
@@ -487,6 +496,12 @@ def _cross_check(cfg: Config, file: str) -> None:
     g = cfg.grid
     if g.x_max_m <= g.x_min_m or g.y_max_m <= g.y_min_m:
         raise ConfigError("needs x_max_m > x_min_m and y_max_m > y_min_m", file=file, key="grid")
+    from appliance.perception import known_pipelines
+    for key in ("stop_recur_now", "confirm_pipelines"):
+        bad = [p for p in getattr(g, key) if p not in known_pipelines()]
+        if bad:
+            raise ConfigError(f"unknown pipeline {bad[0]!r}; known: "
+                              f"{', '.join(known_pipelines())}", file=file, key=f"grid.{key}")
     t = cfg.tracking
     if t.far_m <= t.near_m or t.large_m <= t.small_m:
         raise ConfigError("needs far_m > near_m and large_m > small_m", file=file, key="tracking")

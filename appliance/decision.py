@@ -22,7 +22,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from appliance.config import Config
-from appliance.fusion import GridFusion
+from appliance.fusion import GridFusion, confirmed_points
 from appliance.gate import SafetyGate
 from appliance.perception.base import Detections
 from appliance.tracking import Tracker, TrackView
@@ -216,7 +216,10 @@ class DecisionCore:
         detections = self.laser_on_ground(detections)
         pts = [d.points_xy for d in detections.values() if d is not None and len(d.points_xy)]
         pts_xy = np.concatenate(pts) if pts else np.zeros((0, 2), np.float32)
-        grid_cells = self.grid.update(pts_xy, vehicle, now_ns)
+        g = self.cfg.grid
+        grid_cells = self.grid.update(pts_xy, vehicle, now_ns,
+                                      confirmed_points(detections, g.confirm_points,
+                                                       g.confirm_pipelines))
         speed = vehicle.speed_mps if vehicle is not None else 0.0
         kappa = self._curvature(vehicle)
         if self.tracker is None:

@@ -125,8 +125,10 @@ class GridFusion:
 
     # -- update -----------------------------------------------------------------------------
     def update(self, points_xy: np.ndarray, vehicle: VehicleState | None,
-               stamp_ns: int) -> np.ndarray:
-        """Integrate this cycle's points; return the occupied cell centres (M, 2)."""
+               stamp_ns: int, confirmed_xy: np.ndarray | None = None) -> np.ndarray:
+        """Integrate this cycle's points; return the occupied cell centres (M, 2).
+        ``confirmed_xy``: points (among ``points_xy`` or not) whose cells are occupied at once
+        (evidence raised to ``occupied_at``: :func:`confirmed_points`)."""
         dt = 0.0 if self._last_ns is None else (stamp_ns - self._last_ns) / 1e9
         self._last_ns = stamp_ns
         if dt > 2.0 or dt < 0:   # a gap (restart, stale sensors) or a clock step back: old
@@ -145,6 +147,14 @@ class GridFusion:
             ix, iy, ok = self.cell_index(pts)
             hit[ix[ok], iy[ok]] = True
             self.evidence += hit
+        cpts = None if confirmed_xy is None else \
+            np.asarray(confirmed_xy, dtype=np.float64).reshape(-1, 2)
+        if cpts is not None and len(cpts):
+            ix, iy, ok = self.cell_index(cpts)
+            ix, iy = ix[ok], iy[ok]
+            self.evidence[ix, iy] = np.maximum(self.evidence[ix, iy],
+                                               np.float32(self.cfg.occupied_at))
+            hit[ix, iy] = True
         if self.chain is not None:
             # a hit cell continues the longest chain that ended within the radius last cycle
             near = cv2.dilate(self.chain, self._chain_kernel)
@@ -206,3 +216,27 @@ class GridFusion:
         out = np.zeros(len(pts), np.float32)
         out[ok] = self.evidence[ix[ok], iy[ok]]
         return out
+
+
+def confirmed_points(detections: dict, min_points: int, pipelines) -> np.ndarray | None:
+    """``[grid] confirm_points``: the points of the named pipelines that lie on the footprint
+    (+ half a 0.1 m cell) of one of their own candidates of at least ``min_points`` points --
+    what is near and large enough to be believed on one frame. None when off or none."""
+    if min_points <= 0:
+        return None
+    out = []
+    for name in pipelines:
+        d = detections.get(name)
+        if d is None or not len(d.points_xy) or not d.candidates:
+            continue
+        big = [c for c in d.candidates if c.points >= min_points]
+        if not big:
+            continue
+        xy = np.asarray(d.points_xy, np.float64).reshape(-1, 2)
+        on = np.zeros(len(xy), bool)
+        for c in big:
+            on |= (np.abs(xy[:, 0] - c.x_m) <= c.length_m / 2 + 0.05) & \
+                  (np.abs(xy[:, 1] - c.y_m) <= c.width_m / 2 + 0.05)
+        if on.any():
+            out.append(xy[on])
+    return np.concatenate(out) if out else None

@@ -696,3 +696,44 @@ def test_the_loop_with_movers_keeps_a_standing_vehicle_from_a_person_walking_int
         assert st["obstacles"]["decision"] == "cells+movers"
         assert st["tracks"] and st["tracks"][0]["sources"] == ["laser"]
         assert link.sent[-1].state is GateState.STOP
+
+
+def _rgbd_frame(x, y, points, n=8):
+    from appliance.perception import Candidate
+    pts = blob(x, y, n=n)
+    c = Candidate(x_m=x, y_m=y, length_m=0.4, width_m=0.4, height_m=0.5, points=points,
+                  confidence=0.9, sources=("geometry", "colour"), pipeline="rgbd")
+    return {"rgbd": Detections(points_xy=pts, candidates=(c,))}
+
+
+@pytest.mark.parametrize("points, occupied_first", [(400, True), (299, False)])
+def test_a_large_rgbd_candidate_is_occupied_on_its_first_frame(points, occupied_first):
+    """[grid] confirm_points (#14: fewer frames when near and large): the cells of a candidate
+    of at least confirm_points points are occupied at once; a smaller one waits for the
+    second look, as every cell did before. A STOP still needs the recurrence."""
+    cfg = Config(grid=GridConfig(confirm_points=300))
+    core = DecisionCore(cfg)
+    pic = core.perceive(_rgbd_frame(3.5, 0.0, points), VehicleState(0, 0), 0)
+    assert (len(pic.cells_xy) > 0) is occupied_first
+    assert pic.verdict.in_stop == 0                 # occupied once: SLOW at most, not STOP
+    pic = core.perceive(_rgbd_frame(3.5, 0.0, points), VehicleState(DT, 0), DT)
+    assert len(pic.cells_xy) > 0                    # two looks: occupied either way
+
+
+def test_confirm_points_is_off_by_default_and_only_for_the_named_pipelines():
+    core = DecisionCore(Config())
+    assert not len(core.perceive(_rgbd_frame(3.5, 0.0, 5000), VehicleState(0, 0), 0).cells_xy)
+    cfg = Config(grid=GridConfig(confirm_points=300, confirm_pipelines=("laser",)))
+    core = DecisionCore(cfg)
+    assert not len(core.perceive(_rgbd_frame(3.5, 0.0, 5000), VehicleState(0, 0), 0).cells_xy)
+
+
+def test_confirm_pipelines_names_are_checked(tmp_path):
+    from appliance.config import ConfigError, load_config
+    f = tmp_path / "c.toml"
+    f.write_text('[grid]\nconfirm_pipelines = ["rgdb"]\n')
+    with pytest.raises(ConfigError, match="unknown pipeline 'rgdb'"):
+        load_config(f)
+    f.write_text('[grid]\nstop_recur_now = ["lazer"]\n')
+    with pytest.raises(ConfigError, match="grid.stop_recur_now"):
+        load_config(f)

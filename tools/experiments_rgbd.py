@@ -39,7 +39,7 @@ sys.path.insert(0, str(ROOT))
 from appliance import rgbd_model  # noqa: E402
 from appliance.config import GridConfig, default_config  # noqa: E402
 from appliance.evaluation import score_frame, zone_for_run  # noqa: E402
-from appliance.fusion import GridFusion  # noqa: E402
+from appliance.fusion import GridFusion, confirmed_points  # noqa: E402
 from appliance.perception import SensorInputs  # noqa: E402
 from appliance.perception.rgbd import PAPER_RULE, RgbdPipeline, RgbdPipelineConfig  # noqa: E402
 from appliance.perception.rgbd_colour import COLOUR_SPACES  # noqa: E402
@@ -257,7 +257,10 @@ def run_variants(runs: list[str], variants: dict[str, dict], step: int, model,
                 det = pipes[name].process(SensorInputs(stamp_ns=stamp, rgbd=frame,
                                                        vehicle=vehicle))
                 ms = (time.perf_counter() - t0) * 1e3
-                cells = fusions[name].update(det.points_xy, vehicle, stamp)
+                g = fusions[name].cfg
+                cells = fusions[name].update(det.points_xy, vehicle, stamp,
+                                             confirmed_points({"rgbd": det}, g.confirm_points,
+                                                              g.confirm_pipelines))
                 if truth is None:
                     continue
                 t = tallies[name]
