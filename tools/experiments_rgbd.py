@@ -382,6 +382,8 @@ def cmd_variants(a) -> int:
         "misaligned depth +8 px": {"options": base, "shift_px": 8},
         "multi-frame voting (grid two-hit: occupied_at 1.4, decay 0.5)": {
             "options": base, "grid": {"occupied_at": 1.4, "decay": 0.5}},
+        "multi-frame voting + large candidates at once (grid confirm_points = 300)": {
+            "options": base, "grid": {"occupied_at": 1.4, "decay": 0.5, "confirm_points": 300}},
         "multi-frame voting, no raised level surfaces": {
             "options": {**base, "raised_surfaces": False},
             "grid": {"occupied_at": 1.4, "decay": 0.5}},
