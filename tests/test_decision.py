@@ -720,8 +720,9 @@ def test_a_large_rgbd_candidate_is_occupied_on_its_first_frame(points, occupied_
     assert len(pic.cells_xy) > 0                    # two looks: occupied either way
 
 
-def test_confirm_points_is_off_by_default_and_only_for_the_named_pipelines():
-    core = DecisionCore(Config())
+def test_confirm_points_off_and_only_for_the_named_pipelines():
+    assert GridConfig().confirm_points == 300           # the default since the 21st session
+    core = DecisionCore(Config(grid=GridConfig(confirm_points=0)))
     assert not len(core.perceive(_rgbd_frame(3.5, 0.0, 5000), VehicleState(0, 0), 0).cells_xy)
     cfg = Config(grid=GridConfig(confirm_points=300, confirm_pipelines=("laser",)))
     core = DecisionCore(cfg)
