@@ -1,0 +1,34 @@
+"""tools/why_missed.py: a campaign drive replayed, per cycle what the stereo-novelty pipeline had
+on one obstacle (docs/front-end.md "The blind corners")."""
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+TOOL = ROOT / "tools" / "why_missed.py"
+
+
+def _run(*args):
+    return subprocess.run([sys.executable, str(TOOL), *args], cwd=ROOT, capture_output=True,
+                          text=True, timeout=300)
+
+
+def test_a_window_of_a_training_drive_prints_a_line_per_cycle():
+    p = _run("stubble-coverage", "1", "c1", "0.5", "1.0")
+    assert p.returncode == 0, p.stderr[-2000:]
+    lines = p.stdout.splitlines()
+    assert lines[0].startswith("stubble-coverage 1: c1 person-crouching")
+    rows = [x for x in lines if x.startswith("t=")]
+    assert len(rows) == 6                                  # 0.5, 0.6 ... 1.0 s
+    for r in rows:
+        assert any(f" {v} " in r for v in ("pair", "left", "right", "none"))
+        assert "ahead" in r and "novel" in r
+
+
+def test_bad_requests_are_one_clear_line():
+    p = _run("stubble-coverage", "1000", "c1", "1", "2")
+    assert p.returncode == 2 and "training seeds only" in p.stderr and "Traceback" not in p.stderr
+    p = _run("stubble-coverage", "1", "c1", "2", "1")
+    assert p.returncode == 2 and "T1 must not be before T0" in p.stderr
+    p = _run("stubble-coverage", "1", "c99", "0.1", "0.2")
+    assert p.returncode == 2 and "no obstacle 'c99'" in p.stderr and "c1" in p.stderr
