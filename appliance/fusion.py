@@ -219,17 +219,20 @@ class GridFusion:
 
 
 def confirmed_points(detections: dict, min_points: int, pipelines) -> np.ndarray | None:
-    """``[grid] confirm_points``: the points of the named pipelines that lie on the footprint
-    (+ half a 0.1 m cell) of one of their own candidates of at least ``min_points`` points --
-    what is near and large enough to be believed on one frame. None when off or none."""
+    """``[grid] confirm_points``: the points that lie on the footprint (+ half a 0.1 m cell) of a
+    candidate of at least ``min_points`` points made by one of the named pipelines (alone, or
+    inside ``fused``), from the detections that hold it -- what is near and large enough to be
+    believed on one frame. None when off or none."""
     if min_points <= 0:
         return None
     out = []
-    for name in pipelines:
-        d = detections.get(name)
+    names = set(pipelines)
+    for name, d in detections.items():
         if d is None or not len(d.points_xy) or not d.candidates:
             continue
-        big = [c for c in d.candidates if c.points >= min_points]
+        # a candidate names the pipeline that made it (inside "fused" too)
+        big = [c for c in d.candidates if c.points >= min_points
+               and (name in names or getattr(c, "pipeline", None) in names)]
         if not big:
             continue
         xy = np.asarray(d.points_xy, np.float64).reshape(-1, 2)

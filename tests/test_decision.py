@@ -738,3 +738,10 @@ def test_confirm_pipelines_names_are_checked(tmp_path):
     f.write_text('[grid]\nstop_recur_now = ["lazer"]\n')
     with pytest.raises(ConfigError, match="grid.stop_recur_now"):
         load_config(f)
+
+
+def test_confirm_points_finds_rgbd_candidates_inside_the_fused_pipeline():
+    frame = _rgbd_frame(3.5, 0.0, 400)
+    fused = {"fused": frame["rgbd"]}                # the candidate still names "rgbd"
+    core = DecisionCore(Config(grid=GridConfig(confirm_points=300)))
+    assert len(core.perceive(fused, VehicleState(0, 0), 0).cells_xy) > 0
