@@ -721,7 +721,7 @@ def test_a_large_rgbd_candidate_is_occupied_on_its_first_frame(points, occupied_
 
 
 def test_confirm_points_off_and_only_for_the_named_pipelines():
-    assert GridConfig().confirm_points == 300           # the default since the 21st session
+    assert GridConfig().confirm_points == 0             # off (docs/rgbd.md)
     core = DecisionCore(Config(grid=GridConfig(confirm_points=0)))
     assert not len(core.perceive(_rgbd_frame(3.5, 0.0, 5000), VehicleState(0, 0), 0).cells_xy)
     cfg = Config(grid=GridConfig(confirm_points=300, confirm_pipelines=("laser",)))
