@@ -117,6 +117,9 @@ class GridConfig:
     confirm_pipelines: tuple = _f(("rgbd",),
                                   doc="confirm_points: the pipelines whose large candidates are "
                                       "believed at once")
+    confirm_sources: tuple = _f((), doc="confirm_points: a candidate must also carry one of "
+                                        "these cues (e.g. [\"colour\"]: not texture alone, "
+                                        "which a near bush row raises); [] = any")
 
 
 @dataclass(frozen=True)

@@ -219,7 +219,7 @@ class DecisionCore:
         g = self.cfg.grid
         grid_cells = self.grid.update(pts_xy, vehicle, now_ns,
                                       confirmed_points(detections, g.confirm_points,
-                                                       g.confirm_pipelines))
+                                                       g.confirm_pipelines, g.confirm_sources))
         speed = vehicle.speed_mps if vehicle is not None else 0.0
         kappa = self._curvature(vehicle)
         if self.tracker is None:

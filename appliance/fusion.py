@@ -218,11 +218,13 @@ class GridFusion:
         return out
 
 
-def confirmed_points(detections: dict, min_points: int, pipelines) -> np.ndarray | None:
+def confirmed_points(detections: dict, min_points: int, pipelines,
+                     sources=()) -> np.ndarray | None:
     """``[grid] confirm_points``: the points that lie on the footprint (+ half a 0.1 m cell) of a
     candidate of at least ``min_points`` points made by one of the named pipelines (alone, or
-    inside ``fused``), from the detections that hold it -- what is near and large enough to be
-    believed on one frame. None when off or none."""
+    inside ``fused``) and, when ``sources`` names any, carrying one of those cues, from the
+    detections that hold it -- what is near and large enough to be believed on one frame. None
+    when off or none."""
     if min_points <= 0:
         return None
     out = []
@@ -232,7 +234,8 @@ def confirmed_points(detections: dict, min_points: int, pipelines) -> np.ndarray
             continue
         # a candidate names the pipeline that made it (inside "fused" too)
         big = [c for c in d.candidates if c.points >= min_points
-               and (name in names or getattr(c, "pipeline", None) in names)]
+               and (name in names or getattr(c, "pipeline", None) in names)
+               and (not sources or any(src in sources for src in c.sources))]
         if not big:
             continue
         xy = np.asarray(d.points_xy, np.float64).reshape(-1, 2)

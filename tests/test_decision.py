@@ -745,3 +745,13 @@ def test_confirm_points_finds_rgbd_candidates_inside_the_fused_pipeline():
     fused = {"fused": frame["rgbd"]}                # the candidate still names "rgbd"
     core = DecisionCore(Config(grid=GridConfig(confirm_points=300)))
     assert len(core.perceive(fused, VehicleState(0, 0), 0).cells_xy) > 0
+
+
+def test_confirm_sources_keeps_a_texture_only_candidate_to_the_second_look():
+    cfg = Config(grid=GridConfig(confirm_points=300, confirm_sources=("colour",)))
+    frame = _rgbd_frame(3.5, 0.0, 400)                       # sources geometry + colour
+    assert len(DecisionCore(cfg).perceive(frame, VehicleState(0, 0), 0).cells_xy) > 0
+    d = frame["rgbd"]
+    tex = dataclasses.replace(d.candidates[0], sources=("geometry", "texture"))
+    frame = {"rgbd": dataclasses.replace(d, candidates=(tex,))}
+    assert not len(DecisionCore(cfg).perceive(frame, VehicleState(0, 0), 0).cells_xy)

@@ -260,7 +260,8 @@ def run_variants(runs: list[str], variants: dict[str, dict], step: int, model,
                 g = fusions[name].cfg
                 cells = fusions[name].update(det.points_xy, vehicle, stamp,
                                              confirmed_points({"rgbd": det}, g.confirm_points,
-                                                              g.confirm_pipelines))
+                                                              g.confirm_pipelines,
+                                                              g.confirm_sources))
                 if truth is None:
                     continue
                 t = tallies[name]
