@@ -223,7 +223,6 @@ class DecisionCore:
         speed = vehicle.speed_mps if vehicle is not None else 0.0
         kappa = self._curvature(vehicle)
         if self.tracker is None:
-            g = self.cfg.grid
             conf = None
             if g.stop_at > g.occupied_at:    # a STOP needs a cell seen in more cycles running
                 conf = self.grid.evidence_at(grid_cells) >= g.stop_at - 1e-6

@@ -147,10 +147,8 @@ class GridFusion:
             ix, iy, ok = self.cell_index(pts)
             hit[ix[ok], iy[ok]] = True
             self.evidence += hit
-        cpts = None if confirmed_xy is None else \
-            np.asarray(confirmed_xy, dtype=np.float64).reshape(-1, 2)
-        if cpts is not None and len(cpts):
-            ix, iy, ok = self.cell_index(cpts)
+        if confirmed_xy is not None and len(confirmed_xy):
+            ix, iy, ok = self.cell_index(np.asarray(confirmed_xy, np.float64).reshape(-1, 2))
             ix, iy = ix[ok], iy[ok]
             self.evidence[ix, iy] = np.maximum(self.evidence[ix, iy],
                                                np.float32(self.cfg.occupied_at))
