@@ -120,6 +120,12 @@ class GridConfig:
     confirm_sources: tuple = _f((), doc="confirm_points: a candidate must also carry one of "
                                         "these cues (e.g. [\"colour\"]: not texture alone, "
                                         "which a near bush row raises); [] = any")
+    confirm_min_ahead_m: float = _f(0.0, lo=0.0, hi=20.0,
+                                    doc="confirm_points: only a candidate whose near edge is at "
+                                        "least this far ahead of the front (zones.front_x_m) is "
+                                        "believed at once; nearer ones wait for the second look "
+                                        "(a bush row faced at an end bay, 0.6-0.8 m ahead); "
+                                        "0 = anywhere")
 
 
 @dataclass(frozen=True)

@@ -217,12 +217,13 @@ class GridFusion:
 
 
 def confirmed_points(detections: dict, min_points: int, pipelines,
-                     sources=()) -> np.ndarray | None:
+                     sources=(), min_x_m: float | None = None) -> np.ndarray | None:
     """``[grid] confirm_points``: the points that lie on the footprint (+ half a 0.1 m cell) of a
     candidate of at least ``min_points`` points made by one of the named pipelines (alone, or
     inside ``fused``) and, when ``sources`` names any, carrying one of those cues, from the
-    detections that hold it -- what is near and large enough to be believed on one frame. None
-    when off or none."""
+    detections that hold it -- what is near and large enough to be believed on one frame; with
+    ``min_x_m``, only candidates whose near edge (x - length / 2) is at least that far forward.
+    None when off or none."""
     if min_points <= 0:
         return None
     out = []
@@ -233,7 +234,8 @@ def confirmed_points(detections: dict, min_points: int, pipelines,
         # a candidate names the pipeline that made it (inside "fused" too)
         big = [c for c in d.candidates if c.points >= min_points
                and (name in names or getattr(c, "pipeline", None) in names)
-               and (not sources or any(src in sources for src in c.sources))]
+               and (not sources or any(src in sources for src in c.sources))
+               and (min_x_m is None or c.x_m - c.length_m / 2 >= min_x_m)]
         if not big:
             continue
         xy = np.asarray(d.points_xy, np.float64).reshape(-1, 2)

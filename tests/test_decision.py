@@ -755,3 +755,21 @@ def test_confirm_sources_keeps_a_texture_only_candidate_to_the_second_look():
     tex = dataclasses.replace(d.candidates[0], sources=("geometry", "texture"))
     frame = {"rgbd": dataclasses.replace(d, candidates=(tex,))}
     assert not len(DecisionCore(cfg).perceive(frame, VehicleState(0, 0), 0).cells_xy)
+
+
+def test_confirm_min_ahead_keeps_a_candidate_near_the_front_to_the_second_look():
+    """[grid] confirm_min_ahead_m: a bush row faced 0.6-0.8 m ahead at an end bay is not
+    believed on one frame; the same candidate further out is."""
+    zones = ZonesConfig(front_x_m=1.1)
+    cfg = Config(zones=zones, grid=GridConfig(confirm_points=300, confirm_min_ahead_m=1.0))
+    # near edge at 3.5 - 0.2 = 3.3 m: 2.2 m ahead of the front -> at once
+    assert len(DecisionCore(cfg).perceive(_rgbd_frame(3.5, 0.0, 400), VehicleState(0, 0),
+                                          0).cells_xy) > 0
+    # near edge at 2.0 - 0.2 = 1.8 m: 0.7 m ahead of the front -> waits
+    core = DecisionCore(cfg)
+    assert not len(core.perceive(_rgbd_frame(2.0, 0.0, 400), VehicleState(0, 0), 0).cells_xy)
+    assert len(core.perceive(_rgbd_frame(2.0, 0.0, 400), VehicleState(DT, 0), DT).cells_xy) > 0
+    # off (0): anywhere, as before
+    cfg = Config(zones=zones, grid=GridConfig(confirm_points=300))
+    assert len(DecisionCore(cfg).perceive(_rgbd_frame(2.0, 0.0, 400), VehicleState(0, 0),
+                                          0).cells_xy) > 0

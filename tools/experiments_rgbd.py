@@ -37,7 +37,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from appliance import rgbd_model  # noqa: E402
-from appliance.config import GridConfig, default_config  # noqa: E402
+from appliance.config import SCENE_ZONES, GridConfig, default_config  # noqa: E402
 from appliance.evaluation import score_frame, zone_for_run  # noqa: E402
 from appliance.fusion import GridFusion, confirmed_points  # noqa: E402
 from appliance.perception import SensorInputs  # noqa: E402
@@ -232,6 +232,9 @@ def run_variants(runs: list[str], variants: dict[str, dict], step: int, model,
         zone = zone_for_run(reader.info)
         fusions = {n: GridFusion(GridConfig(**v.get("grid", {"occupied_at": 1.0, "decay": 0.0})))
                    for n, v in variants.items()}
+        # confirm_min_ahead_m counts from the sprayer's front, as the daemon's greenhouse zones
+        min_x = {n: (SCENE_ZONES["greenhouse"]["front_x_m"] + f.cfg.confirm_min_ahead_m
+                     if f.cfg.confirm_min_ahead_m > 0 else None) for n, f in fusions.items()}
         try:
             check = SimTruthCheck(reader)
         except (ValueError, KeyError):
@@ -261,7 +264,7 @@ def run_variants(runs: list[str], variants: dict[str, dict], step: int, model,
                 cells = fusions[name].update(det.points_xy, vehicle, stamp,
                                              confirmed_points({"rgbd": det}, g.confirm_points,
                                                               g.confirm_pipelines,
-                                                              g.confirm_sources))
+                                                              g.confirm_sources, min_x[name]))
                 if truth is None:
                     continue
                 t = tallies[name]
