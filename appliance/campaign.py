@@ -260,17 +260,21 @@ def aggregate(results: list[dict]) -> dict:
                           "stops": len(ds), "stopped_without_hold": len(ds) - len(held)}
     by_place: dict[str, int] = {}
     by_cause: dict[str, int] = {}
+    by_contact: dict[str, int] = {}
     for r in results:
         for k, v in r["false_stops_by_place"].items():
             by_place[k] = by_place.get(k, 0) + v
         for k, v in r["false_stops_by_cause"].items():
             by_cause[k] = by_cause.get(k, 0) + v
+        for k, v in r.get("collisions_by_contact", {}).items():   # older results lack it
+            by_contact[k] = by_contact.get(k, 0) + v
     samples = [r["model"]["samples_max"] for r in results if r["model"]["samples_max"]]
     return {
         "drives": len(results),
         "simulated_hours": round(hours, 6),
         "distance_km": round(sum(r["distance_m"] for r in results) / 1000.0, 3),
         "collisions": tot("collisions"),
+        "collisions_by_contact": dict(sorted(by_contact.items())),
         "false_stops": fs,
         "false_stops_per_hour": None if hours <= 0 else round(fs / hours, 3),
         "false_stops_per_hour_ci95": poisson_ci95(fs, hours),
@@ -699,6 +703,10 @@ def format_summary(s: dict) -> str:
     for k, r in s["per_scene"].items():
         lines.append(row(k, r))
     lines.append(row("all", s))
+    if s.get("collisions_by_contact"):
+        lines.append("collisions by where they touched the vehicle: " + ", ".join(
+            f"{k} {v}" for k, v in s["collisions_by_contact"].items()) +
+            " (side/rear: beside or behind the body, out of a forward box's view)")
     for cls, d in s["detection_distance_m"].items():
         lines.append(f"detection distance {cls}: min {d['min']} m, median {d['median']} m "
                      f"({d['stops']} stops)")

@@ -56,6 +56,21 @@ STAGES = ("acquire", "perception", "fusion", "gate", "send")
 _NUM = re.compile(r"-?\d+(\.\d+)?")
 
 
+def contact_part(p: np.ndarray, rear_m: float, length_m: float, tol_m: float = 0.05) -> str:
+    """Which part of the vehicle an obstacle touched, from its footprint points ``p`` in the
+    level vehicle frame at the collision (the vehicle spans x in [-rear_m, -rear_m +
+    length_m]): "front" when any of it reaches the front line (within ``tol_m``), "rear" when
+    all of it lies behind the rear, else "side" -- beside the body, where a forward-looking
+    box has no view (a person stepping out beside it, a corner swept into something in a
+    turn)."""
+    p = np.asarray(p, np.float64).reshape(-1, 2)
+    if not len(p) or float(p[:, 0].max()) >= -rear_m + length_m - tol_m:
+        return "front"
+    if float(p[:, 0].max()) <= -rear_m + tol_m:
+        return "rear"
+    return "side"
+
+
 def rss_mb() -> float:
     """Resident set size of this process (Linux /proc), MB."""
     try:
@@ -444,9 +459,13 @@ class Drive:
                 self._missed_open.discard(k)
         # collisions (the sim vehicle counts them)
         if v.collisions > self._prev_collisions:
+            rear, length, _w = self.scene.footprint
             for oid in v.obstacles_hit[self._prev_collisions:]:
-                o = next(ob for ob in self.field.world.obstacles if ob.id == oid)
+                k, o = next((k, ob) for k, ob in enumerate(self.field.world.obstacles)
+                            if ob.id == oid)
+                contact = contact_part(v.footprint_in_vehicle(k), rear, length)
                 self.events.append({"t_s": round(t_s, 1), "event": "collision", "kind": o.cls,
+                                    "contact": contact,
                                     "x_m": round(x, 2), "y_m": round(y, 2),
                                     "speed_mps": round(v.speed, 2),
                                     "stop_zone_m": round(stop_len, 2), "reason": out.reason,
@@ -533,7 +552,10 @@ class Drive:
         cal = getattr(self.field, "stereo_calibration", None)
         by_place: dict[str, int] = {}
         by_cause: dict[str, int] = {}
+        by_contact: dict[str, int] = {}
         for e in self.events:
+            if e["event"] == "collision":
+                by_contact[e["contact"]] = by_contact.get(e["contact"], 0) + 1
             if e["event"] == "stop" and e["kind"] == "false":
                 by_place[e["place"]] = by_place.get(e["place"], 0) + 1
                 by_cause[e["cause"]] = by_cause.get(e["cause"], 0) + 1
@@ -550,6 +572,7 @@ class Drive:
             "finished_path": bool(st.get("finished", False)),
             "collisions": int(v.collisions),
             "collided_with": list(v.obstacles_hit),
+            "collisions_by_contact": by_contact,
             "true_stops": self.counts["true"], "false_stops": self.counts["false"],
             "fault_stops": self.counts["fault"], "missed_stops": self.missed,
             "false_stop_s": round(self.false_stop_s, 1),

@@ -6,8 +6,10 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import sys
 
+import numpy as np
 import pytest
 
 from appliance.campaign import (COMPARE_EXCLUDE, Campaign, CampaignError, aggregate,
@@ -326,3 +328,42 @@ def test_a_stop_for_a_walker_about_to_meet_the_vehicle_is_scored_true():
     # too far aside to get there in time (2.25 s at 1.2 m/s: 2.7 m)
     assert not meets_vehicle(person(4.0, -4.5), (0.0, 1.2), 2.5, z, 0.4, 0.5, 0.2)
     assert meets_vehicle(person(4.0, -3.5), (0.0, 1.2), 2.5, z, 0.4, 0.5, 0.2)
+
+
+def test_contact_part_tells_front_side_and_rear():
+    """Where an obstacle touched the vehicle (body x in [-0.4, 2.2]): a forward box answers
+    for the front, not for what steps in beside the body (the greenhouse training drives'
+    two collisions: a walker from behind a bush row, a person swept by a corner in a turn)."""
+    from appliance.campaign_drive import contact_part
+    sq = lambda x, y: np.array([[x + a, y + b] for a in (-0.15, 0.15)  # noqa: E731
+                                for b in (-0.2, 0.2)])
+    assert contact_part(sq(2.3, 0.0), 0.4, 2.6) == "front"       # head on
+    assert contact_part(sq(2.1, 0.8), 0.4, 2.6) == "front"       # its edge at the front line
+    assert contact_part(sq(1.2, 0.7), 0.4, 2.6) == "side"        # beside the body
+    assert contact_part(sq(-0.6, 0.0), 0.4, 2.6) == "rear"
+
+
+def test_a_collision_beside_the_body_is_reported_as_a_side_contact():
+    """A real drive: an obstacle put beside the vehicle's body is hit in the next cycle; the
+    event and the drive's result say "side", and the summary counts it."""
+    from appliance.campaign_drive import Drive, deep_merge, drive_config_data
+    data = deep_merge(drive_config_data("stubble-coverage", 1, stereo_scale=0.25),
+                      {"perception": {"pipelines": ["laser"]}})
+    drv = Drive("stubble-coverage", 1, 0.01, config_data=data).build()
+    try:
+        v = drv.vehicle
+        x, y, yaw = v.pose()
+        k, o = 0, drv.field.world.obstacles[0]
+        # 1.0 m ahead of the origin, 0.45 m left: beside the 1.5 m-wide body, behind its front
+        o.x = x + 1.0 * math.cos(yaw) - 0.45 * math.sin(yaw)
+        o.y = y + 1.0 * math.sin(yaw) + 0.45 * math.cos(yaw)
+        v.refresh_footprint(k)
+        drv.n_cycles = 2
+        res = drv.run()
+    finally:
+        drv.daemon.shutdown()
+    hits = [e for e in drv.events if e["event"] == "collision"]
+    assert [e["contact"] for e in hits] == ["side"], drv.events
+    result = res["result"]
+    assert result["collisions_by_contact"] == {"side": 1}
+    assert aggregate([result])["collisions_by_contact"] == {"side": 1}
