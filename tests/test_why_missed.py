@@ -32,3 +32,33 @@ def test_bad_requests_are_one_clear_line():
     assert p.returncode == 2 and "T1 must not be before T0" in p.stderr
     p = _run("stubble-coverage", "1", "c99", "0.1", "0.2")
     assert p.returncode == 2 and "no obstacle 'c99'" in p.stderr and "c1" in p.stderr
+
+
+def test_an_rgbd_drive_prints_what_the_kinect_had(tmp_path):
+    """The greenhouse (rgbd) drives: per cycle whether the obstacle is in the Kinect's view,
+    the depth points and candidates near it, and the picture written when asked."""
+    p = _run("greenhouse-coverage", "1", "g1", "0.5", "0.8", "--minutes", "3",
+             "--picture", str(tmp_path))
+    assert p.returncode == 0, p.stderr[-2000:]
+    lines = p.stdout.splitlines()
+    assert lines[0].startswith("greenhouse-coverage 1: g1 ")
+    rows = [x for x in lines if x.startswith("t=")]
+    assert len(rows) == 4                                  # 0.5, 0.6, 0.7, 0.8 s
+    for r in rows:
+        assert any(f" {v} " in r for v in ("view", "out", "beside", "-"))
+        assert "candidates" in r and "cells" in r
+    assert len(list(tmp_path.glob("greenhouse-coverage-1-g1-t*.png"))) == 4
+
+
+def test_kinect_view_tells_in_view_out_of_range_and_beside():
+    sys.path.insert(0, str(ROOT / "tools"))
+    sys.path.insert(0, str(ROOT))
+    import numpy as np
+    from why_missed import kinect_view
+
+    from drivers.sim.field import depth_calibration
+    cal = depth_calibration()                              # the simulated Kinect
+    assert kinect_view(cal, np.array([0.0, 0.0, 3.0])) == "view"
+    assert kinect_view(cal, np.array([0.0, 0.0, 9.0])) == "out"          # beyond the range
+    assert kinect_view(cal, np.array([5.0, 0.0, 1.0])) == "out"          # off the image
+    assert kinect_view(cal, np.array([1.0, 0.0, -0.2])) == "beside"

@@ -12,11 +12,18 @@ of the left and right images at its depth, else ``left``/``right``/``none``); th
 within 0.5 m of its footprint (all, and those kept in the height band) and their heights; the
 occupied cells near it; the novelty of its cells at 0.3 / 0.6 / 0.9 m up (1 novel, 0 not,
 ``-`` out of the image) and the novelty model's updates so far. ``--picture DIR`` writes the
-left image with the novelty mask tinted, per cycle, into DIR.
+left image with the novelty mask tinted (an RGB-D drive: the colour image), per cycle, into DIR.
 
 OBSTACLE is the scene's obstacle id (``c1``...: the campaign's events name it, e.g.
 ``c1/person-crouching``). Training seeds only (< 1000): acceptance drives are scored, not
-looked into. Stereo-novelty drives only.
+looked into.
+
+An RGB-D drive (the greenhouse: `[perception] pipelines = ["rgbd"]`) prints instead, per cycle:
+whether the obstacle is in the Kinect's view (``view``: its middle inside the image and within
+the depth range; ``out`` otherwise, ``beside`` when it is behind the camera's image plane), the
+depth points within 0.5 m of its footprint, the rgbd candidates there (points, cues), the
+occupied cells near it, and the box's state and reason -- for collisions where nothing ever had
+a pixel of it (an obstacle beside the body in a U-turn, a person stepping out of a bush row).
 """
 from __future__ import annotations
 
@@ -39,6 +46,51 @@ def seen_by(cal, pc: np.ndarray, width: int) -> str:
     in_left, in_right = 0 <= u < width, 0 <= u - d < width
     return {(True, True): "pair", (True, False): "left", (False, True): "right"}.get(
         (in_left, in_right), "none")
+
+
+def kinect_view(cal, pc: np.ndarray) -> str:
+    """Is camera-frame point ``pc`` in the RGB-D camera's view: ``view`` (inside the image and
+    the depth range), ``out`` (in front of the camera but outside either), ``beside`` (at or
+    behind its image plane)."""
+    if pc[2] <= 0.05:
+        return "beside"
+    u = cal.camera.cx + cal.camera.fx * pc[0] / pc[2]
+    v = cal.camera.cy + cal.camera.fy * pc[1] / pc[2]
+    inside = 0 <= u < cal.camera.width and 0 <= v < cal.camera.height
+    return "view" if inside and cal.min_range_m <= pc[2] <= cal.max_range_m else "out"
+
+
+def rgbd_line(t: float, res, ob, pose, front_x_m: float) -> str:
+    """One cycle of an RGB-D drive, on obstacle ``ob`` (see the module's text)."""
+    x, y, yaw = pose
+    dx, dy = ob.x - x, ob.y - y                          # the obstacle moves: read it now
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    ox, oy = cy * dx + sy * dy, -sy * dx + cy * dy
+    hx, hy = ob.length_m / 2 + 0.5, ob.width_m / 2 + 0.5
+
+    def near(p):
+        p = np.asarray(p, np.float64).reshape(-1, 2)
+        return (np.abs(p[:, 0] - ox) <= hx) & (np.abs(p[:, 1] - oy) <= hy)
+    fr = res.inputs.rgbd
+    view = "-"
+    if fr is not None:
+        cal = fr.calib
+        pc = cal.mount.camera_to_vehicle().T @ (np.array([ox, oy, ob.height_m / 2])
+                                                - np.asarray(cal.mount.position))
+        view = kinect_view(cal, pc)
+    det = res.detections.get("rgbd")
+    n_pts, cand = 0, "-"
+    if det is not None:
+        n_pts = int(near(det.points_xy).sum()) if len(det.points_xy) else 0
+        cs = [c for c in det.candidates if abs(c.x_m - ox) <= hx and abs(c.y_m - oy) <= hy]
+        if cs:
+            cues = sorted({src for c in cs for src in c.sources})
+            cand = f"{sum(c.points for c in cs)} ({','.join(cues)})"
+    cells = np.asarray(res.cells_xy, float).reshape(-1, 2)
+    n_cells = int(near(cells).sum()) if len(cells) else 0
+    return (f"t={t:6.1f} {res.output.state.value:5s} ahead {ox - front_x_m:6.2f} m "
+            f"side {oy:+5.2f} m  {view:6s}  points {n_pts:4d}  candidates {cand:20s}  "
+            f"cells {n_cells:3d}  {res.output.reason[:60]}")
 
 
 def main(argv=None) -> int:
@@ -69,10 +121,11 @@ def main(argv=None) -> int:
     d.build()
     d.n_cycles = min(d.n_cycles, int(math.ceil(a.t1 * d.rate)) + 1)   # the same drive, to T1
     pipe = next((p for p in d.daemon.pipelines if hasattr(p, "novelty")), None)
-    if pipe is None:
+    rgbd = pipe is None and any(p.name == "rgbd" for p in d.daemon.pipelines)
+    if pipe is None and not rgbd:
         runs = ", ".join(p.name for p in d.daemon.pipelines)
-        print(f"why_missed: error: the drive runs {runs}, not stereo-novelty (--config with "
-              "[perception] pipelines = [\"stereo-novelty\"])", file=sys.stderr)
+        print(f"why_missed: error: the drive runs {runs}, not stereo-novelty or rgbd (--config "
+              "with [perception] pipelines = [\"stereo-novelty\"])", file=sys.stderr)
         return 2
     obs = {o.id: o for o in d.field.world.obstacles}
     if a.obstacle not in obs:
@@ -89,6 +142,13 @@ def main(argv=None) -> int:
     def after(res):
         t = res.index / d.rate
         if t < a.t0 - 1e-9 or t > a.t1 + 1e-9:
+            return
+        if rgbd:
+            print(rgbd_line(t, res, ob, d.vehicle.pose(), d.zones.front_x_m), flush=True)
+            if pic_dir is not None and res.inputs.rgbd is not None:
+                import cv2
+                cv2.imwrite(str(pic_dir / f"{a.kind}-{a.seed}-{ob.id}-t{t:05.1f}.png"),
+                            res.inputs.rgbd.color)
             return
         x, y, yaw = d.vehicle.pose()
         dx, dy = ob.x - x, ob.y - y                      # the obstacle moves: read it now
