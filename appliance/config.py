@@ -125,7 +125,8 @@ class GridConfig:
                                         "least this far ahead of the front (zones.front_x_m) is "
                                         "believed at once; nearer ones wait for the second look "
                                         "(a bush row faced at an end bay, 0.6-0.8 m ahead); "
-                                        "0 = anywhere")
+                                        "0 = anywhere (with confirm_points = 300, 1.0 and 1.5 "
+                                        "failed their rule: docs/rgbd.md)")
 
 
 @dataclass(frozen=True)
