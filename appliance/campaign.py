@@ -109,18 +109,18 @@ def check_out_dir(out) -> Path:
     return p
 
 
-def load_extra_config(path) -> dict:
-    """A --config file's tables (merged over each drive's config); checked here once so a bad
-    file is one clear error before any drive starts."""
+def load_extra_config(path, option: str = "--config") -> dict:
+    """A --config (or --shadow) file's tables (merged over each drive's config); checked here
+    once so a bad file is one clear error before any drive starts."""
     if not path:
         return {}
     import tomllib
     try:
         data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
     except OSError as exc:
-        raise CampaignError(f"--config {path}: cannot read it ({exc.strerror or exc})") from None
+        raise CampaignError(f"{option} {path}: cannot read it ({exc.strerror or exc})") from None
     except tomllib.TOMLDecodeError as exc:
-        raise CampaignError(f"--config {path}: not valid TOML: {exc}") from None
+        raise CampaignError(f"{option} {path}: not valid TOML: {exc}") from None
     from appliance.config import parse_config
     parse_config(data, str(path))          # ConfigError (a FieldguardError) names the key
     return data
@@ -134,11 +134,17 @@ def drive_id(kind: str, seed: int) -> str:
 
 
 def make_spec(kind: str, seed: int, minutes: float, stereo_scale: float,
-              extra: dict | None = None) -> dict:
+              extra: dict | None = None, shadow: dict | None = None) -> dict:
+    """One drive's settings; with ``shadow`` (a --shadow file's tables) also the whole config
+    of a second configuration judged on the drive's inputs (appliance/campaign_shadow.py)."""
     from appliance.campaign_drive import drive_config_data
-    return {"kind": kind, "seed": int(seed), "minutes": float(minutes),
+    spec = {"kind": kind, "seed": int(seed), "minutes": float(minutes),
             "stereo_scale": float(stereo_scale),
             "config": drive_config_data(kind, seed, stereo_scale=stereo_scale, extra=extra)}
+    if shadow is not None:
+        spec["shadow"] = drive_config_data(kind, seed, stereo_scale=stereo_scale,
+                                           extra=shadow)
+    return spec
 
 
 def run_drive(spec: dict, report=None) -> dict:
@@ -149,7 +155,8 @@ def run_drive(spec: dict, report=None) -> dict:
         def cb(done, _total):
             report(done / 10.0)
     d = Drive(spec["kind"], spec["seed"], spec["minutes"], config_data=spec["config"],
-              stereo_scale=spec["stereo_scale"], progress=cb)
+              stereo_scale=spec["stereo_scale"], progress=cb,
+              shadow_config=spec.get("shadow"))
     out = d.run()
     out["result"]["spec"] = spec
     return out
@@ -269,7 +276,17 @@ def aggregate(results: list[dict]) -> dict:
         for k, v in r.get("collisions_by_contact", {}).items():   # older results lack it
             by_contact[k] = by_contact.get(k, 0) + v
     samples = [r["model"]["samples_max"] for r in results if r["model"]["samples_max"]]
-    return {
+    shadow = None
+    sh = [r["shadow"] for r in results if r.get("shadow")]
+    if sh:
+        keys = ("true_stops", "false_stops", "fault_stops", "missed_stops",
+                "false_stops_primary_only", "false_stops_shadow_only",
+                "true_stops_primary_only", "true_stops_shadow_only")
+        shadow = {k: sum(x[k] for x in sh) for k in keys}
+        shadow["false_stops_per_hour"] = None if hours <= 0 else \
+            round(shadow["false_stops"] / hours, 3)
+        shadow["false_stops_per_hour_ci95"] = poisson_ci95(shadow["false_stops"], hours)
+    out = {
         "drives": len(results),
         "simulated_hours": round(hours, 6),
         "distance_km": round(sum(r["distance_m"] for r in results) / 1000.0, 3),
@@ -291,6 +308,9 @@ def aggregate(results: list[dict]) -> dict:
                   "bytes_max": None if not samples else 40 * max(samples),
                   "bound": max((r["model"]["bound"] or 0 for r in results), default=0) or None},
     }
+    if shadow is not None:
+        out["shadow"] = shadow
+    return out
 
 
 def _commit() -> str | None:
@@ -402,7 +422,7 @@ class Campaign:
     def __init__(self, kinds, seeds, minutes: float, out, *, workers: int | None = None,
                  address: str | None = None, config_file: str | None = None,
                  stereo_scale: float = 0.5, progress: bool = True, report: bool = True,
-                 command: str = ""):
+                 command: str = "", shadow_file: str | None = None):
         self.kinds = parse_kinds(kinds) if isinstance(kinds, str) else list(kinds)
         self.seeds = parse_seeds(seeds) if isinstance(seeds, str) else list(seeds)
         if not (isinstance(minutes, (int, float)) and math.isfinite(minutes) and minutes > 0):
@@ -420,9 +440,11 @@ class Campaign:
         self.out = check_out_dir(out)
         self.extra = load_extra_config(config_file)
         self.config_file = config_file
+        self.shadow_file = shadow_file
+        self.shadow = load_extra_config(shadow_file, "--shadow") if shadow_file else None
         self.progress, self.report, self.command = progress, report, command
         # seed by seed, each seed over the kinds: a campaign stopped early has every kind
-        self.specs = [make_spec(k, s, self.minutes, self.stereo_scale, self.extra)
+        self.specs = [make_spec(k, s, self.minutes, self.stereo_scale, self.extra, self.shadow)
                       for s in self.seeds for k in self.kinds]
         self.interrupted = False
         self.failed: dict[str, str] = {}
@@ -478,7 +500,8 @@ class Campaign:
                     "cpu_count": os.cpu_count()},
             provenance={"command": self.command, "commit": _commit(),
                         "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(t0)),
-                        "config_file": self.config_file, "address": self.address})
+                        "config_file": self.config_file, "shadow_file": self.shadow_file,
+                        "address": self.address})
         if self.failed:
             summary["failed_drives"] = dict(self.failed)
         summary["complete"] = len(results) == len(self.specs)
@@ -583,6 +606,11 @@ def register(sub) -> None:
                                      "instead of starting a local one")
     c.add_argument("--config", metavar="FILE", help="TOML merged over each drive's config "
                    "(e.g. [perception] pipelines)")
+    c.add_argument("--shadow", metavar="FILE",
+                   help="TOML of a second configuration (merged over each drive's config as "
+                        "--config is) judged on each drive's own inputs every cycle, never "
+                        "driving: its stops scored against the same truth, and the false "
+                        "stops only one side made (docs/proving-ground.md 'Shadow')")
     c.add_argument("--stereo-scale", type=float, default=0.5,
                    help="stereo at this fraction of 1280x1024 (default 0.5: 640x512)")
     c.add_argument("--no-report", action="store_true", help="summary.json only, no report.md")
@@ -675,7 +703,7 @@ def cmd_campaign(a) -> int:
     sigterm_interrupts()
     camp = Campaign(a.scene, a.seeds, a.minutes, a.out, workers=a.workers, address=a.address,
                     config_file=a.config, stereo_scale=a.stereo_scale,
-                    report=not a.no_report,
+                    report=not a.no_report, shadow_file=a.shadow,
                     command="fieldguard campaign " + " ".join(sys.argv[2:]))
     s = camp.run()
     if a.json:
@@ -707,6 +735,16 @@ def format_summary(s: dict) -> str:
         lines.append("collisions by where they touched the vehicle: " + ", ".join(
             f"{k} {v}" for k, v in s["collisions_by_contact"].items()) +
             " (side/rear: beside or behind the body, out of a forward box's view)")
+    sh = s.get("shadow")
+    if sh:
+        lines.append(
+            f"shadow ({s.get('provenance', {}).get('shadow_file') or '--shadow'}) on the same "
+            f"inputs: {sh['false_stops']} false stops ({sh['false_stops_per_hour']}/h, 95 % CI "
+            f"{sh['false_stops_per_hour_ci95']}), {sh['true_stops']} true, "
+            f"{sh['missed_stops']} missed; false stops only the drive's own config made "
+            f"{sh['false_stops_primary_only']}, only the shadow's {sh['false_stops_shadow_only']}"
+            f"; true stops only the drive's {sh['true_stops_primary_only']}, only the "
+            f"shadow's {sh['true_stops_shadow_only']}")
     for cls, d in s["detection_distance_m"].items():
         lines.append(f"detection distance {cls}: min {d['min']} m, median {d['median']} m "
                      f"({d['stops']} stops)")

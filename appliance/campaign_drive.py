@@ -211,7 +211,8 @@ class Drive:
     def __init__(self, kind: str, seed: int, minutes: float, *, config_data: dict | None = None,
                  stereo_scale: float = 0.25, every: int = 1, zone_tol_m: float = 0.5,
                  lateral_tol_m: float = 0.2, near_m: float = 3.0, hold_m: float = 0.3,
-                 sync_updates: bool = True, progress=None, progress_every: int = 300):
+                 sync_updates: bool = True, progress=None, progress_every: int = 300,
+                 shadow_config: dict | None = None):
         self.kind, self.seed = kind, int(seed)
         self.minutes = float(minutes)
         self.stereo_scale = float(stereo_scale)
@@ -222,6 +223,10 @@ class Drive:
         self.near_m, self.hold_m = float(near_m), float(hold_m)
         self.sync_updates = bool(sync_updates)
         self.progress, self.progress_every = progress, max(1, int(progress_every))
+        # a second configuration's whole config data, judged on this drive's inputs
+        # (appliance/campaign_shadow.py); it never drives
+        self.shadow_config = shadow_config
+        self.shadow = None
         self.daemon = None
         self.field = None
         self.events: list[dict] = []
@@ -233,6 +238,21 @@ class Drive:
         cfg, d, self.field = start_sim_daemon(data, f"<campaign {self.kind} {self.seed}>")
         self.cfg = cfg
         self.daemon = d
+        if self.shadow_config is not None:
+            from appliance.campaign_shadow import Shadow
+            from appliance.config import parse_config
+            from appliance.daemon import sim_config
+            sdata = deep_merge(self.shadow_config, {"sim": {"scene": self.kind,
+                                                            "seed": self.seed}})
+            self.shadow = Shadow(sim_config(parse_config(sdata, f"<shadow {self.kind} "
+                                                               f"{self.seed}>"), self.kind))
+            self._shadow_events: list[dict] = []
+            self._shadow_counts = {"true": 0, "false": 0, "fault": 0}
+            self._shadow_missed = 0
+            self._shadow_missed_open: set[int] = set()
+            self._shadow_prev = None
+            self._shadow_episode = None
+            self._stop_times = {"primary": [], "shadow": []}
         self.vehicle = self.field.vehicle
         self.scene = self.field.scene
         self.zones = cfg.zones
@@ -374,6 +394,74 @@ class Drive:
         return names
 
     # ---- per cycle ---------------------------------------------------------------------------
+    def _shadow_cycle(self, res, t_s: float, truth: list, stop_len: float, kappa: float,
+                      place: str) -> None:
+        """The shadow configuration on this cycle's inputs, scored as the drive's own STOPs
+        are (true / false / fault onsets, missed stops) against the same truth; its stop zone
+        is its own verdict's (the truth is recomputed when that differs)."""
+        from hal.types import GateState
+        out, pic, faults = self.shadow.step(res)
+        if self.sync_updates:
+            self.shadow.wait_idle()
+        verdict = None if pic is None else pic.verdict
+        s_len = verdict.stop_len_m if verdict is not None else self.zones.min_stop_m
+        s_kappa = float(getattr(verdict, "curvature_1pm", 0.0) or 0.0)
+        if abs(s_len - stop_len) > 1e-9 or abs(s_kappa - kappa) > 1e-12:
+            truth = self.truth(s_len, s_kappa)
+        state = out.state
+        is_stop = state is GateState.STOP
+        obstacle_stop = is_stop and "stop zone" in out.reason
+        in_stop = [o for o in truth if o["in_stop"] or o["meets"]]
+        if is_stop:
+            self._stop_times["shadow"].append(t_s)
+        prev = self._shadow_prev
+        if is_stop and (prev not in (None, GateState.STOP) or (
+                obstacle_stop and self._shadow_episode is None and prev is not None)):
+            fault = not obstacle_stop and not out.reason.startswith("holding")
+            kind = "fault" if fault and faults else ("true" if in_stop else "false")
+            cause = cause_of(out.reason)
+            if kind == "false":
+                beyond = [o for o in truth if o["in_slow"]]
+                cause = ("early: real obstacle just beyond the stop zone" if beyond else
+                         "phantom: nothing real in the stop or slow zone")
+            ev = {"t_s": round(t_s, 1), "event": "stop", "kind": kind, "reason": out.reason,
+                  "cause": cause, "place": place, "stop_zone_m": round(s_len, 2),
+                  "primary_state": res.output.state.value, "duration_s": None}
+            self._shadow_counts[kind] += 1
+            self._shadow_events.append(ev)
+            self._shadow_episode = ev
+        if not is_stop and self._shadow_episode is not None:
+            self._shadow_episode["duration_s"] = round(t_s - self._shadow_episode["t_s"], 1)
+            self._shadow_episode = None
+        for o in truth:
+            k = o["k"]
+            if o["deep"] and not is_stop and k not in self._shadow_missed_open:
+                self._shadow_missed_open.add(k)
+                self._shadow_missed += 1
+                self._shadow_events.append({"t_s": round(t_s, 1), "event": "missed",
+                                            "kind": o["cls"], "reason": out.reason,
+                                            "obstacle": f"{o['id']}/{o['cls']}",
+                                            "primary_state": res.output.state.value})
+            elif not o["in_stop"]:
+                self._shadow_missed_open.discard(k)
+        self._shadow_prev = state
+
+    def shadow_result(self) -> dict | None:
+        """The shadow's figures on this drive (None without one): its own stop counts, and
+        the two sides' false and true stops that the other side did not share (no STOP of
+        the other's within 0.5 s: campaign_shadow.paired)."""
+        if self.shadow is None:
+            return None
+        from appliance.campaign_shadow import paired
+        stops = [e for e in self._shadow_events if e["event"] == "stop"]
+        own = [e for e in self.events if e["event"] == "stop"]
+        return {"true_stops": self._shadow_counts["true"],
+                "false_stops": self._shadow_counts["false"],
+                "fault_stops": self._shadow_counts["fault"],
+                "missed_stops": self._shadow_missed,
+                **paired(own, stops, self._stop_times),
+                "events": self._shadow_events}
+
     def on_cycle(self, res) -> None:
         from hal.types import GateState
         v = self.vehicle
@@ -473,6 +561,10 @@ class Drive:
                                     "obstacle": f"{o.id}/{o.cls}", "real_nearest_m": 0.0})
             self._prev_collisions = v.collisions
         self._prev_state = state
+        if self.shadow is not None:
+            if is_stop:
+                self._stop_times["primary"].append(t_s)
+            self._shadow_cycle(res, t_s, truth, stop_len, kappa, place)
         # the model, memory and time
         samples = None
         for nd in self._novelty:
@@ -539,6 +631,8 @@ class Drive:
                 self._episode["duration_s"] = round(
                     d.loop.cycles / self.rate - self._episode["t_s"], 1)
             d.shutdown()
+            if self.shadow is not None:
+                self.shadow.close()
             cv2.setNumThreads(threads)
         return {"result": self.result(wall_s, cpu_s), "rows": self.rows,
                 "events": self.events}
@@ -599,4 +693,5 @@ class Drive:
                 "rss_mb_last": None if not self._rss else round(self._rss[-1], 1),
                 "overruns": self.daemon.loop.overruns,
             },
+            **({} if self.shadow is None else {"shadow": self.shadow_result()}),
         }

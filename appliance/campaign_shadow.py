@@ -1,0 +1,106 @@
+"""A second configuration judged on a campaign drive's own inputs ("shadow mode").
+
+Two campaigns with different configurations drive the same fields, but after their first
+different decision the vehicles are in different places: every later false stop is a false
+stop of another drive. On 12 drives with 3-5 false stops that divergence decides the totals as
+much as the option does (docs/rgbd.md, "None within a metre of the front"). A shadow removes
+it: the drive is driven by its own configuration, and every cycle the shadow configuration's
+own pipelines and decision (fresh instances, their own state: novelty model, grid, tracks,
+gate hold) see exactly the inputs the box saw -- the same frames, the same vehicle state -- and
+its answer is scored against the same truth, but never drives. What one says and the other does
+not, at the same moment on the same inputs, is the option's own doing.
+
+What a shadow cannot show: what the vehicle would have done next under it (a shadow STOP does
+not stop the vehicle; the next frames are the primary's). Closed-loop totals still come from a
+campaign driven by the configuration itself.
+"""
+from __future__ import annotations
+
+import logging
+
+log = logging.getLogger("fieldguard.campaign")
+
+
+class Shadow:
+    """The pipelines and decision core of ``cfg`` (a parsed Config), stepped on each cycle's
+    inputs of another loop (:meth:`step`)."""
+
+    def __init__(self, cfg):
+        from appliance.decision import DecisionCore
+        from appliance.perception import make_pipeline
+        self.cfg = cfg
+        self.pipelines = [make_pipeline(n, cfg) for n in cfg.perception.pipelines]
+        self.optional = set(cfg.perception.optional)
+        self.core = DecisionCore(cfg)
+
+    def step(self, res):
+        """The shadow's (GateOutput, Picture or None, faults) for the primary loop's cycle ``res``:
+        the primary's faults that are not its own pipelines' or fusion's (a stale camera is
+        stale for both) plus the shadow's own."""
+        inputs = res.inputs
+        faults = [f for f in res.faults if not f.startswith(("pipeline ", "fusion failed"))]
+        detections = {}
+        for p in self.pipelines:
+            optional = p.name in self.optional
+            missing = p.missing(inputs)
+            if missing:
+                if not optional:
+                    faults.append(f"pipeline {p.name}: no fresh {', '.join(missing)} data")
+                continue
+            try:
+                detections[p.name] = p.process(inputs)
+            except Exception as exc:           # as the loop: a fault (STOP), never a crash
+                log.exception("shadow pipeline %s failed", p.name)
+                if not optional:
+                    faults.append(f"pipeline {p.name} failed: {type(exc).__name__}: {exc}")
+        try:
+            picture = self.core.perceive(detections, inputs.vehicle, res.stamp_ns)
+        except Exception as exc:
+            log.exception("shadow fusion failed")
+            faults.append(f"fusion failed: {type(exc).__name__}: {exc}")
+            picture = None
+        stamps = [getattr(s, "stamp_ns", None) for s in (inputs.stereo, inputs.rgbd, inputs.laser)]
+        stamps = [s for s in stamps if s is not None]
+        out = self.core.decide(res.stamp_ns, faults, picture, min(stamps) if stamps else None)
+        return out, picture, faults
+
+    def wait_idle(self, timeout_s: float = 600.0) -> None:
+        """Wait for the shadow's novelty model updates (background threads) to finish, as the
+        drive does for its own: the same answer on every run."""
+        for p in self.pipelines:
+            nd = getattr(p, "novelty", None)
+            u = getattr(nd, "updater", None)
+            if u is not None and not u.wait_idle(timeout_s):
+                raise RuntimeError("the shadow's novelty model update did not finish in "
+                                   f"{timeout_s:.0f} s")
+
+    def close(self) -> None:
+        for p in self.pipelines:
+            close = getattr(p, "close", None)
+            if close is not None:
+                try:
+                    close()
+                except Exception:              # closing is best effort
+                    log.exception("shadow pipeline %s: close failed", p.name)
+
+
+def paired(primary: list[dict], shadow: list[dict], stop_times: dict[str, list[float]],
+           window_s: float = 0.5) -> dict:
+    """The two sides' stop onsets (``primary`` / ``shadow``: events with ``t_s`` and ``kind``)
+    against the other side's STOP cycles (``stop_times["primary"]`` / ``["shadow"]``: the
+    times of every cycle it said STOP): a false stop is *one side's only* when the other side
+    said STOP in no cycle within ``window_s`` of its onset."""
+    import bisect
+
+    def near(times, t):
+        i = bisect.bisect_left(times, t - window_s - 1e-9)
+        return i < len(times) and times[i] <= t + window_s + 1e-9
+    out = {}
+    for side, evs, other in (("primary", primary, "shadow"), ("shadow", shadow, "primary")):
+        times = stop_times[other]
+        only = [e for e in evs if e["kind"] == "false" and not near(times, e["t_s"])]
+        out[f"false_stops_{side}_only"] = len(only)
+        out[f"false_stops_{side}_only_t_s"] = [e["t_s"] for e in only]
+        true_only = [e for e in evs if e["kind"] == "true" and not near(times, e["t_s"])]
+        out[f"true_stops_{side}_only"] = len(true_only)
+    return out

@@ -1,0 +1,81 @@
+"""The campaign's shadow (appliance/campaign_shadow.py): a second configuration judged on a
+drive's own inputs every cycle, never driving. Real drives of the simulated greenhouse
+(training seed 7: a true STOP for a look-alike crate at 18.5 s)."""
+import json
+
+import pytest
+
+from appliance.campaign import Campaign, CampaignError, make_spec, run_drive
+from appliance.campaign_shadow import paired
+
+EXCLUDE_ALL = ('[zones]\nexclusion = [{x_min_m = -5.0, x_max_m = 40.0, y_min_m = -20.0, '
+               'y_max_m = 20.0}]\n')
+
+
+def _stops(events):
+    return [(e["t_s"], e["kind"]) for e in events if e["event"] == "stop"]
+
+
+@pytest.fixture(scope="module")
+def own_shadow():
+    """Greenhouse training seed 7, 21 simulated s, its shadow its own config."""
+    spec = make_spec("greenhouse-coverage", 7, 0.35, 0.25)
+    spec["shadow"] = spec["config"]
+    return run_drive(spec)
+
+
+def test_a_shadow_of_the_drives_own_config_agrees_on_every_cycle(own_shadow):
+    r = own_shadow["result"]
+    sh = r["shadow"]
+    assert r["true_stops"] == 1                                 # the crate, 18.5 s
+    assert _stops(sh["events"]) == _stops(own_shadow["events"]) == [(18.5, "true")]
+    assert (sh["true_stops"], sh["false_stops"], sh["missed_stops"]) == \
+        (r["true_stops"], r["false_stops"], r["missed_stops"])
+    assert sh["false_stops_primary_only"] == sh["false_stops_shadow_only"] == 0
+    assert sh["true_stops_primary_only"] == sh["true_stops_shadow_only"] == 0
+
+
+def test_a_shadow_never_drives_and_its_own_misses_are_its_own(own_shadow, tmp_path):
+    """A shadow that ignores everything (one exclusion box over the whole view): the drive is
+    the same drive, stop for stop; the shadow makes no obstacle STOP, so the crate's true stop
+    is the drive's only. Through the campaign itself: the summary adds the shadow up."""
+    f = tmp_path / "blind.toml"
+    f.write_text(EXCLUDE_ALL)
+    out = tmp_path / "camp"
+    s = Campaign("greenhouse-coverage", "7", 0.35, out, workers=1, stereo_scale=0.25,
+                 progress=False, report=False, shadow_file=str(f)).run()
+    r = json.loads((out / "drives" / "greenhouse-coverage-7" / "result.json").read_text())
+    events = json.loads((out / "drives" / "greenhouse-coverage-7" / "events.json").read_text())
+    events = events if isinstance(events, list) else events.get("events", events)
+    assert _stops(events) == _stops(own_shadow["events"])         # it never drove
+    assert r["distance_m"] == own_shadow["result"]["distance_m"]
+    sh = r["shadow"]
+    assert sh["true_stops"] == 0 and not [e for e in sh["events"]
+                                          if e["event"] == "stop" and e["kind"] != "fault"]
+    assert sh["true_stops_primary_only"] == 1 and sh["true_stops_shadow_only"] == 0
+    assert s["shadow"]["true_stops_primary_only"] == 1
+    assert s["provenance"]["shadow_file"] == str(f)
+    from appliance.campaign import format_summary
+    assert "shadow (" in format_summary(s) and "only the shadow's 0" in format_summary(s)
+
+
+def test_a_bad_shadow_file_is_one_clear_error(tmp_path):
+    f = tmp_path / "bad.toml"
+    f.write_text("[zones]\nfront_x_m = 'far'\n")
+    with pytest.raises(Exception, match="zones"):
+        Campaign("greenhouse-coverage", "7", 0.1, tmp_path / "c", workers=1,
+                 shadow_file=str(f))
+    with pytest.raises(CampaignError, match="--shadow .*cannot read it"):
+        Campaign("greenhouse-coverage", "7", 0.1, tmp_path / "c", workers=1,
+                 shadow_file=str(tmp_path / "nowhere.toml"))
+
+
+def test_paired_counts_what_only_one_side_said():
+    primary = [{"t_s": 5.0, "kind": "false"}, {"t_s": 9.0, "kind": "true"},
+               {"t_s": 20.0, "kind": "false"}]
+    shadow = [{"t_s": 5.3, "kind": "false"}, {"t_s": 14.0, "kind": "false"}]
+    times = {"primary": [5.0, 5.1, 9.0, 9.1, 20.0], "shadow": [5.3, 5.4, 14.0]}
+    p = paired(primary, shadow, times)
+    assert p["false_stops_primary_only"] == 1 and p["false_stops_primary_only_t_s"] == [20.0]
+    assert p["false_stops_shadow_only"] == 1 and p["false_stops_shadow_only_t_s"] == [14.0]
+    assert p["true_stops_primary_only"] == 1 and p["true_stops_shadow_only"] == 0
