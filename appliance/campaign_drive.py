@@ -56,17 +56,22 @@ STAGES = ("acquire", "perception", "fusion", "gate", "send")
 _NUM = re.compile(r"-?\d+(\.\d+)?")
 
 
-def contact_part(p: np.ndarray, rear_m: float, length_m: float, tol_m: float = 0.05) -> str:
-    """Which part of the vehicle an obstacle touched, from its footprint points ``p`` in the
-    level vehicle frame at the collision (the vehicle spans x in [-rear_m, -rear_m +
-    length_m]): "front" when any of it reaches the front line (within ``tol_m``), "rear" when
-    all of it lies behind the rear, else "side" -- beside the body, where a forward-looking
+CONTACT_AHEAD_S = 3.0     # "front": the obstacle was in the path ahead this recently
+
+
+def contact_part(p: np.ndarray, rear_m: float, came_from_ahead: bool,
+                 tol_m: float = 0.05) -> str:
+    """Where an obstacle met the vehicle: "front" when it ``came_from_ahead`` (some of its
+    footprint was in the straight corridor ahead of the front line within the last
+    :data:`CONTACT_AHEAD_S`: what a forward-looking box is there to see), else "rear" when
+    its footprint ``p`` (level vehicle frame, at the collision) lies wholly behind the rear
+    (``rear_m`` behind the origin), else "side": it came from beside the body, where a forward
     box has no view (a person stepping out beside it, a corner swept into something in a
     turn)."""
-    p = np.asarray(p, np.float64).reshape(-1, 2)
-    if not len(p) or float(p[:, 0].max()) >= -rear_m + length_m - tol_m:
+    if came_from_ahead:
         return "front"
-    if float(p[:, 0].max()) <= -rear_m + tol_m:
+    p = np.asarray(p, np.float64).reshape(-1, 2)
+    if len(p) and float(p[:, 0].max()) <= -rear_m + tol_m:
         return "rear"
     return "side"
 
@@ -280,6 +285,7 @@ class Drive:
         self.detections: list[dict] = []
         self.false_stop_s = 0.0
         self._prev_collisions = 0
+        self._ahead_t: dict[int, float] = {}  # obstacle index -> last time in the path ahead
         self._history = deque(maxlen=int(10 * self.rate))
         p = self.scene.path
         seg = np.hypot(np.diff(p[:, 0]), np.diff(p[:, 1]))
@@ -482,6 +488,8 @@ class Drive:
         # detection streaks of the in-path obstacles ahead
         for o in truth:
             k = o["k"]
+            if math.isfinite(o["ahead"]) and o["ahead"] >= 0.0:
+                self._ahead_t[k] = t_s         # in the corridor ahead (a collision's contact)
             if math.isfinite(o["ahead"]) and o["ahead"] >= -0.5 and self._held(cells, o["pts"]):
                 self._streak.setdefault(k, o["ahead"])
             else:
@@ -547,11 +555,13 @@ class Drive:
                 self._missed_open.discard(k)
         # collisions (the sim vehicle counts them)
         if v.collisions > self._prev_collisions:
-            rear, length, _w = self.scene.footprint
+            rear = self.scene.footprint[0]
             for oid in v.obstacles_hit[self._prev_collisions:]:
                 k, o = next((k, ob) for k, ob in enumerate(self.field.world.obstacles)
                             if ob.id == oid)
-                contact = contact_part(v.footprint_in_vehicle(k), rear, length)
+                seen_t = self._ahead_t.get(k)
+                contact = contact_part(v.footprint_in_vehicle(k), rear, seen_t is not None and
+                                       t_s - seen_t <= CONTACT_AHEAD_S + 1e-9)
                 self.events.append({"t_s": round(t_s, 1), "event": "collision", "kind": o.cls,
                                     "contact": contact,
                                     "x_m": round(x, 2), "y_m": round(y, 2),

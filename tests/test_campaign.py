@@ -331,16 +331,18 @@ def test_a_stop_for_a_walker_about_to_meet_the_vehicle_is_scored_true():
 
 
 def test_contact_part_tells_front_side_and_rear():
-    """Where an obstacle touched the vehicle (body x in [-0.4, 2.2]): a forward box answers
-    for the front, not for what steps in beside the body (the greenhouse training drives'
-    two collisions: a walker from behind a bush row, a person swept by a corner in a turn)."""
+    """Where an obstacle met the vehicle (rear 0.4 m behind the origin): from the path ahead
+    (a forward box answers for it), or from beside or behind the body (the greenhouse
+    training drives' two collisions: a walker out of a bush row, a person swept by a corner
+    in a U-turn, never in the corridor ahead)."""
     from appliance.campaign_drive import contact_part
     sq = lambda x, y: np.array([[x + a, y + b] for a in (-0.15, 0.15)  # noqa: E731
                                 for b in (-0.2, 0.2)])
-    assert contact_part(sq(2.3, 0.0), 0.4, 2.6) == "front"       # head on
-    assert contact_part(sq(2.1, 0.8), 0.4, 2.6) == "front"       # its edge at the front line
-    assert contact_part(sq(1.2, 0.7), 0.4, 2.6) == "side"        # beside the body
-    assert contact_part(sq(-0.6, 0.0), 0.4, 2.6) == "rear"
+    assert contact_part(sq(2.3, 0.0), 0.4, True) == "front"      # head on
+    assert contact_part(sq(2.1, 0.8), 0.4, True) == "front"      # at a corner, came from ahead
+    assert contact_part(sq(2.1, 0.8), 0.4, False) == "side"      # the same place, from beside
+    assert contact_part(sq(1.2, 0.7), 0.4, False) == "side"
+    assert contact_part(sq(-0.6, 0.0), 0.4, False) == "rear"
 
 
 def test_a_collision_beside_the_body_is_reported_as_a_side_contact():
