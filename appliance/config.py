@@ -106,27 +106,26 @@ class GridConfig:
                                    "recurrence (the laser too: a tuft top it grazes comes and "
                                    "goes; docs/proving-ground.md 'Tuft tops'); [\"laser\"] was "
                                    "the default before")
-    confirm_points: int = _f(0, lo=0, hi=1_000_000,
+    confirm_points: int = _f(300, lo=0, hi=1_000_000,
                              doc="fewer frames when near and large (issue #14): the cells hit "
                                  "by the points of a candidate with at least this many points "
                                  "(of the pipelines in confirm_pipelines) are occupied at once, "
                                  "without the second look (a STOP still needs stop_recur); "
-                                 "0 = off, the default: 300 quadrupled the greenhouse's "
-                                 "false stops on training drives 7-18 (docs/rgbd.md 'Large "
-                                 "candidates at once')")
+                                 "only beyond confirm_min_ahead_m of the front; 0 = off "
+                                 "(docs/rgbd.md 'Large candidates at once')")
     confirm_pipelines: tuple = _f(("rgbd",),
                                   doc="confirm_points: the pipelines whose large candidates are "
                                       "believed at once")
     confirm_sources: tuple = _f((), doc="confirm_points: a candidate must also carry one of "
                                         "these cues (e.g. [\"colour\"]: not texture alone, "
                                         "which a near bush row raises); [] = any")
-    confirm_min_ahead_m: float = _f(0.0, lo=0.0, hi=20.0,
+    confirm_min_ahead_m: float = _f(1.0, lo=0.0, hi=20.0,
                                     doc="confirm_points: only a candidate whose near edge is at "
                                         "least this far ahead of the front (zones.front_x_m) is "
                                         "believed at once; nearer ones wait for the second look "
                                         "(a bush row faced at an end bay, 0.6-0.8 m ahead); "
-                                        "0 = anywhere (with confirm_points = 300, 1.0 and 1.5 "
-                                        "failed their rule: docs/rgbd.md)")
+                                        "0 = anywhere (made the greenhouse's own phantoms at "
+                                        "the end bays: docs/rgbd.md)")
 
 
 @dataclass(frozen=True)

@@ -713,20 +713,21 @@ def test_a_large_rgbd_candidate_is_occupied_on_its_first_frame(points, occupied_
     second look, as every cell did before. A STOP still needs the recurrence."""
     cfg = Config(grid=GridConfig(confirm_points=300))
     core = DecisionCore(cfg)
-    pic = core.perceive(_rgbd_frame(3.5, 0.0, points), VehicleState(0, 0), 0)
+    pic = core.perceive(_rgbd_frame(4.5, 0.0, points), VehicleState(0, 0), 0)
     assert (len(pic.cells_xy) > 0) is occupied_first
     assert pic.verdict.in_stop == 0                 # occupied once: SLOW at most, not STOP
-    pic = core.perceive(_rgbd_frame(3.5, 0.0, points), VehicleState(DT, 0), DT)
+    pic = core.perceive(_rgbd_frame(4.5, 0.0, points), VehicleState(DT, 0), DT)
     assert len(pic.cells_xy) > 0                    # two looks: occupied either way
 
 
 def test_confirm_points_off_and_only_for_the_named_pipelines():
-    assert GridConfig().confirm_points == 0             # off (docs/rgbd.md)
+    g = GridConfig()                                    # on, beyond a metre of the front
+    assert (g.confirm_points, g.confirm_min_ahead_m) == (300, 1.0)
     core = DecisionCore(Config(grid=GridConfig(confirm_points=0)))
-    assert not len(core.perceive(_rgbd_frame(3.5, 0.0, 5000), VehicleState(0, 0), 0).cells_xy)
+    assert not len(core.perceive(_rgbd_frame(4.5, 0.0, 5000), VehicleState(0, 0), 0).cells_xy)
     cfg = Config(grid=GridConfig(confirm_points=300, confirm_pipelines=("laser",)))
     core = DecisionCore(cfg)
-    assert not len(core.perceive(_rgbd_frame(3.5, 0.0, 5000), VehicleState(0, 0), 0).cells_xy)
+    assert not len(core.perceive(_rgbd_frame(4.5, 0.0, 5000), VehicleState(0, 0), 0).cells_xy)
 
 
 def test_confirm_pipelines_names_are_checked(tmp_path):
@@ -741,7 +742,7 @@ def test_confirm_pipelines_names_are_checked(tmp_path):
 
 
 def test_confirm_points_finds_rgbd_candidates_inside_the_fused_pipeline():
-    frame = _rgbd_frame(3.5, 0.0, 400)
+    frame = _rgbd_frame(4.5, 0.0, 400)
     fused = {"fused": frame["rgbd"]}                # the candidate still names "rgbd"
     core = DecisionCore(Config(grid=GridConfig(confirm_points=300)))
     assert len(core.perceive(fused, VehicleState(0, 0), 0).cells_xy) > 0
@@ -749,7 +750,7 @@ def test_confirm_points_finds_rgbd_candidates_inside_the_fused_pipeline():
 
 def test_confirm_sources_keeps_a_texture_only_candidate_to_the_second_look():
     cfg = Config(grid=GridConfig(confirm_points=300, confirm_sources=("colour",)))
-    frame = _rgbd_frame(3.5, 0.0, 400)                       # sources geometry + colour
+    frame = _rgbd_frame(4.5, 0.0, 400)                       # sources geometry + colour
     assert len(DecisionCore(cfg).perceive(frame, VehicleState(0, 0), 0).cells_xy) > 0
     d = frame["rgbd"]
     tex = dataclasses.replace(d.candidates[0], sources=("geometry", "texture"))
@@ -769,7 +770,7 @@ def test_confirm_min_ahead_keeps_a_candidate_near_the_front_to_the_second_look()
     core = DecisionCore(cfg)
     assert not len(core.perceive(_rgbd_frame(2.0, 0.0, 400), VehicleState(0, 0), 0).cells_xy)
     assert len(core.perceive(_rgbd_frame(2.0, 0.0, 400), VehicleState(DT, 0), DT).cells_xy) > 0
-    # off (0): anywhere, as before
-    cfg = Config(zones=zones, grid=GridConfig(confirm_points=300))
+    # 0: anywhere, as before
+    cfg = Config(zones=zones, grid=GridConfig(confirm_points=300, confirm_min_ahead_m=0.0))
     assert len(DecisionCore(cfg).perceive(_rgbd_frame(2.0, 0.0, 400), VehicleState(0, 0),
                                           0).cells_xy) > 0
