@@ -218,11 +218,7 @@ class DecisionCore:
         pts_xy = np.concatenate(pts) if pts else np.zeros((0, 2), np.float32)
         g = self.cfg.grid
         grid_cells = self.grid.update(pts_xy, vehicle, now_ns,
-                                      confirmed_points(
-                                          detections, g.confirm_points, g.confirm_pipelines,
-                                          g.confirm_sources,
-                                          self.cfg.zones.front_x_m + g.confirm_min_ahead_m
-                                          if g.confirm_min_ahead_m > 0 else None))
+                                      confirmed_points(detections, g, self.cfg.zones.front_x_m))
         speed = vehicle.speed_mps if vehicle is not None else 0.0
         kappa = self._curvature(vehicle)
         if self.tracker is None:

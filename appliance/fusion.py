@@ -216,16 +216,17 @@ class GridFusion:
         return out
 
 
-def confirmed_points(detections: dict, min_points: int, pipelines,
-                     sources=(), min_x_m: float | None = None) -> np.ndarray | None:
+def confirmed_points(detections: dict, g: GridConfig, front_x_m: float) -> np.ndarray | None:
     """``[grid] confirm_points``: the points that lie on the footprint (+ half a 0.1 m cell) of a
-    candidate of at least ``min_points`` points made by one of the named pipelines (alone, or
-    inside ``fused``) and, when ``sources`` names any, carrying one of those cues, from the
-    detections that hold it -- what is near and large enough to be believed on one frame; with
-    ``min_x_m``, only candidates whose near edge (x - length / 2) is at least that far forward.
-    None when off or none."""
+    candidate of at least ``g.confirm_points`` points made by one of ``g.confirm_pipelines``
+    (alone, or inside ``fused``), carrying one of ``g.confirm_sources`` when that names any, and
+    whose near edge (x - length / 2) is at least ``g.confirm_min_ahead_m`` ahead of the front
+    at ``front_x_m`` (0: anywhere), from the detections that hold it -- what is near and large
+    enough to be believed on one frame. None when off or none."""
+    min_points, pipelines, sources = g.confirm_points, g.confirm_pipelines, g.confirm_sources
     if min_points <= 0:
         return None
+    min_x_m = front_x_m + g.confirm_min_ahead_m if g.confirm_min_ahead_m > 0 else None
     out = []
     names = set(pipelines)
     for name, d in detections.items():

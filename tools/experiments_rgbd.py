@@ -41,6 +41,8 @@ from appliance.config import SCENE_ZONES, GridConfig, default_config  # noqa: E4
 from appliance.evaluation import score_frame, zone_for_run  # noqa: E402
 from appliance.fusion import GridFusion, confirmed_points  # noqa: E402
 from appliance.perception import SensorInputs  # noqa: E402
+
+FRONT_X_M = SCENE_ZONES["greenhouse"]["front_x_m"]
 from appliance.perception.rgbd import PAPER_RULE, RgbdPipeline, RgbdPipelineConfig  # noqa: E402
 from appliance.perception.rgbd_colour import COLOUR_SPACES  # noqa: E402
 from drivers.runfolder import RunReader  # noqa: E402
@@ -232,9 +234,6 @@ def run_variants(runs: list[str], variants: dict[str, dict], step: int, model,
         zone = zone_for_run(reader.info)
         fusions = {n: GridFusion(GridConfig(**v.get("grid", {"occupied_at": 1.0, "decay": 0.0})))
                    for n, v in variants.items()}
-        # confirm_min_ahead_m counts from the sprayer's front, as the daemon's greenhouse zones
-        min_x = {n: (SCENE_ZONES["greenhouse"]["front_x_m"] + f.cfg.confirm_min_ahead_m
-                     if f.cfg.confirm_min_ahead_m > 0 else None) for n, f in fusions.items()}
         try:
             check = SimTruthCheck(reader)
         except (ValueError, KeyError):
@@ -262,9 +261,9 @@ def run_variants(runs: list[str], variants: dict[str, dict], step: int, model,
                 ms = (time.perf_counter() - t0) * 1e3
                 g = fusions[name].cfg
                 cells = fusions[name].update(det.points_xy, vehicle, stamp,
-                                             confirmed_points({"rgbd": det}, g.confirm_points,
-                                                              g.confirm_pipelines,
-                                                              g.confirm_sources, min_x[name]))
+                                             # from the sprayer's front, as the daemon's
+                                             # greenhouse zones
+                                             confirmed_points({"rgbd": det}, g, FRONT_X_M))
                 if truth is None:
                     continue
                 t = tallies[name]
