@@ -383,13 +383,17 @@ def cmd_variants(a) -> int:
             "options": {**base, "colour_lut_bits": 0, "project_stride_px": 1}},
         "misaligned depth +4 px": {"options": base, "shift_px": 4},
         "misaligned depth +8 px": {"options": base, "shift_px": 8},
-        "multi-frame voting (grid two-hit: occupied_at 1.4, decay 0.5)": {
-            "options": base, "grid": {"occupied_at": 1.4, "decay": 0.5}},
-        "multi-frame voting + large candidates at once (grid confirm_points = 300)": {
-            "options": base, "grid": {"occupied_at": 1.4, "decay": 0.5, "confirm_points": 300}},
-        "multi-frame voting, no raised level surfaces": {
+        # the grid's confirm_points is on by default since the twenty-second session: each
+        # row names its own, so a default flip does not change what a row measures
+        "multi-frame voting (grid two-hit: occupied_at 1.4, decay 0.5; confirm_points = 0)": {
+            "options": base, "grid": {"occupied_at": 1.4, "decay": 0.5, "confirm_points": 0}},
+        "multi-frame voting + large candidates at once beyond 1 m of the front (confirm_points "
+        "= 300, confirm_min_ahead_m = 1.0: the daemon's grid)": {
+            "options": base, "grid": {"occupied_at": 1.4, "decay": 0.5, "confirm_points": 300,
+                                      "confirm_min_ahead_m": 1.0}},
+        "multi-frame voting, no raised level surfaces (confirm_points = 0)": {
             "options": {**base, "raised_surfaces": False},
-            "grid": {"occupied_at": 1.4, "decay": 0.5}},
+            "grid": {"occupied_at": 1.4, "decay": 0.5, "confirm_points": 0}},
     }
     if a.mog_model:
         variants["mixture of Gaussians colour (--mog-model)"] = {
