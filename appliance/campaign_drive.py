@@ -203,6 +203,22 @@ def meets_vehicle(p: np.ndarray, v_xy, speed_mps: float, z, rear_m: float,
                         rest_horizon_s(speed_mps, z) * horizon_scale) is not None
 
 
+def stop_onset(is_stop: bool, obstacle_stop: bool, prev_state, episode_open: bool) -> bool:
+    """Does a STOP episode begin this cycle: a change into STOP, or the boot STOP (never an
+    episode) going on as a STOP for an obstacle -- a vehicle that never left its boot STOP
+    because of something in the stop zone was stopped by it (a drive sat 12.8 s in such a
+    STOP for nothing and scored 0 false stops). ``prev_state`` None: the first cycle."""
+    from hal.types import GateState
+    return is_stop and (prev_state not in (None, GateState.STOP) or (
+        obstacle_stop and not episode_open and prev_state is not None))
+
+
+def false_cause(truth: list) -> str:
+    """A false stop's cause: a real obstacle in the slow zone just beyond, or nothing."""
+    return ("early: real obstacle just beyond the stop zone" if any(o["in_slow"] for o in truth)
+            else "phantom: nothing real in the stop or slow zone")
+
+
 def cause_of(reason: str) -> str:
     """The gate's reason without its numbers: 'obstacle # m ahead in the stop zone (# m)'."""
     return _NUM.sub("#", reason).strip()
@@ -420,16 +436,11 @@ class Drive:
         in_stop = [o for o in truth if o["in_stop"] or o["meets"]]
         if is_stop:
             self._stop_times["shadow"].append(t_s)
-        prev = self._shadow_prev
-        if is_stop and (prev not in (None, GateState.STOP) or (
-                obstacle_stop and self._shadow_episode is None and prev is not None)):
+        if stop_onset(is_stop, obstacle_stop, self._shadow_prev,
+                      self._shadow_episode is not None):
             fault = not obstacle_stop and not out.reason.startswith("holding")
             kind = "fault" if fault and faults else ("true" if in_stop else "false")
-            cause = cause_of(out.reason)
-            if kind == "false":
-                beyond = [o for o in truth if o["in_slow"]]
-                cause = ("early: real obstacle just beyond the stop zone" if beyond else
-                         "phantom: nothing real in the stop or slow zone")
+            cause = false_cause(truth) if kind == "false" else cause_of(out.reason)
             ev = {"t_s": round(t_s, 1), "event": "stop", "kind": kind, "reason": out.reason,
                   "cause": cause, "place": place, "stop_zone_m": round(s_len, 2),
                   "primary_state": res.output.state.value, "duration_s": None}
@@ -495,23 +506,16 @@ class Drive:
             else:
                 self._streak.pop(k, None)
         place = "near an obstacle" if near else ("headland" if self.headland() else "lane")
-        # STOP episodes: a change into STOP, or the boot STOP (never an episode) going on as a
-        # STOP for an obstacle: a vehicle that never left its boot STOP because of something
-        # in the stop zone was stopped by it (a drive sat 12.8 s in such a STOP for nothing and
-        # scored 0 false stops)
-        if is_stop and (self._prev_state not in (None, GateState.STOP) or (
-                obstacle_stop and self._episode is None and self._prev_state is not None)):
+        # STOP episodes (stop_onset)
+        if stop_onset(is_stop, obstacle_stop, self._prev_state, self._episode is not None):
             fault = not obstacle_stop and not out.reason.startswith("holding")
             nearest = min(in_stop, key=lambda o: (not o["in_stop"], o["ahead"])) \
                 if in_stop else None
             kind = "fault" if fault and res.faults else ("true" if nearest else "false")
-            beyond = [o for o in truth if o["in_slow"]]
             pipes = self._pipelines_in_stop(res, stop_len, kappa)
             cause = cause_of(out.reason)
             if kind == "false":
-                cause = ("early: real obstacle just beyond the stop zone" if beyond else
-                         "phantom: nothing real in the stop or slow zone") + \
-                    (f" [{'+'.join(pipes)}]" if pipes else "")
+                cause = false_cause(truth) + (f" [{'+'.join(pipes)}]" if pipes else "")
             ev = {"t_s": round(t_s, 1), "event": "stop", "kind": kind, "x_m": round(x, 2),
                   "y_m": round(y, 2), "speed_mps": round(v.speed, 2),
                   "stop_zone_m": round(stop_len, 2), "reason": out.reason, "cause": cause,
