@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from appliance.perception.candidates import cluster_candidates
+from appliance.perception.candidates import cluster_candidates, low_clusters
 
 
 def _blob(rng, x, y, n, r=0.2, h=(0.5, 1.8)):
@@ -52,15 +52,9 @@ def test_confidence_grows_with_support():
     assert cluster_candidates(few, hf)[0].confidence < cluster_candidates(many, hm)[0].confidence
 
 
-def _reference_candidates(xy, h, conf, flags, cell_m=0.2, min_points=3, contact_m=0.8,
-                          max_range_m=60.0):
-    """The module's rules written plainly (a dict of cells, a flood fill over the dilated
-    occupancy, each cluster's heights sorted): what the vectorised code must give."""
-    xy = np.asarray(xy, float)
-    ok = np.isfinite(xy).all(1) & (np.abs(xy) <= max_range_m).all(1)
-    idx = np.flatnonzero(ok)
-    if len(idx) < min_points:
-        return []
+def _reference_groups(xy, idx, cell_m):
+    """Plain clustering of points ``idx`` of ``xy``: a dict of cells, a flood fill over the
+    dilated occupancy; the point indices of each cluster."""
     cells = {}
     for i in idx:
         cells.setdefault(tuple(np.floor(xy[i] / cell_m).astype(int)), []).append(i)
@@ -84,6 +78,19 @@ def _reference_candidates(xy, h, conf, flags, cell_m=0.2, min_points=3, contact_
     groups = {}
     for c, pts in cells.items():
         groups.setdefault(comp[c], []).extend(pts)
+    return list(groups.values())
+
+
+def _reference_candidates(xy, h, conf, flags, cell_m=0.2, min_points=3, contact_m=0.8,
+                          max_range_m=60.0):
+    """The module's rules written plainly (a dict of cells, a flood fill over the dilated
+    occupancy, each cluster's heights sorted): what the vectorised code must give."""
+    xy = np.asarray(xy, float)
+    ok = np.isfinite(xy).all(1) & (np.abs(xy) <= max_range_m).all(1)
+    idx = np.flatnonzero(ok)
+    if len(idx) < min_points:
+        return []
+    groups = {k: g for k, g in enumerate(_reference_groups(xy, idx, cell_m))}
     out = []
     for pts in groups.values():
         pts = np.array(sorted(pts))
@@ -123,6 +130,42 @@ def test_clusters_agree_with_a_plain_reference(seed):
         assert np.allclose([c.x_m, c.y_m, c.length_m, c.width_m], [w["x"], w["y"], w["length"],
                                                                    w["width"]], rtol=0, atol=1e-12)
         assert abs(c.confidence - w["conf"]) <= 5e-5          # (rounded to 4 places)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_low_clusters_are_the_clusters_whose_top_is_below_the_limit(seed):
+    """low_clusters marks exactly the points of the clusters (whatever their size) whose 95th
+    percentile height -- a candidate's height_m -- is below the limit: against the plain
+    reference clustering."""
+    rng = np.random.default_rng(100 + seed)
+    n = int(rng.integers(50, 800))
+    xy = np.concatenate([rng.normal(rng.uniform(-5, 5, 2), rng.uniform(0.1, 2), (n, 2)),
+                         rng.uniform(-5, 5, (30, 2))])
+    h = np.round(rng.uniform(0.0, 0.4, len(xy)), 2)
+    xy[rng.integers(0, len(xy), 2)] = np.nan
+    low = low_clusters(xy, h, 0.2, cell_m=0.1)
+    want = np.zeros(len(xy), bool)
+    for g in _reference_groups(xy, np.flatnonzero(np.isfinite(xy).all(1)), 0.1):
+        hs = np.sort(h[g])
+        want[g] = hs[int(round(0.95 * (len(g) - 1)))] < 0.2
+    assert 0 < want.sum() < len(xy)
+    assert low.tolist() == want.tolist()
+
+
+def test_low_clusters_by_hand():
+    # a leaf patch 8 cm tall 0.5 m beside a 0.4 m crate face: two clusters, one low
+    leaf = np.array([[2.0, 0.60], [2.02, 0.62], [2.05, 0.61]])
+    crate = np.array([[2.0, -0.1], [2.0, 0.0], [2.0, 0.1]])
+    xy = np.concatenate([leaf, crate])
+    h = np.array([0.05, 0.08, 0.07, 0.1, 0.4, 0.38])
+    assert low_clusters(xy, h, 0.15).tolist() == [True] * 3 + [False] * 3
+    # joined to the crate (one empty cell between them joins): one cluster, not low
+    xy2 = np.concatenate([leaf - [0, 0.4], crate])
+    assert not low_clusters(xy2, h, 0.15).any()
+    # no limit, or nothing finite: nothing is low
+    assert not low_clusters(xy, h, 0.0).any()
+    assert not low_clusters(np.full((3, 2), np.nan), np.zeros(3), 0.15).any()
+    assert low_clusters(np.zeros((0, 2)), np.zeros(0), 0.15).shape == (0,)
 
 
 def test_laser_pipeline_gives_a_candidate_per_object():

@@ -25,6 +25,56 @@ import numpy as np
 from .base import Candidate
 
 
+def cell_labels(p: np.ndarray, cell_m: float, join_cells: int = 1
+                ) -> tuple[int, np.ndarray] | None:
+    """(number of labels, per point its cluster label >= 1) of finite points ``p`` (N >= 1, 2)
+    on a ground grid of ``cell_m`` cells, 8-connected with gaps of ``join_cells`` empty cells
+    joined (the module's clustering); None when the grid would exceed 4 million cells."""
+    g = np.floor(p / cell_m).astype(np.int64)
+    gx, gy = g[:, 0], g[:, 1]
+    gx -= gx.min() - join_cells
+    gy -= gy.min() - join_cells
+    H, W = int(gx.max()) + 1 + join_cells, int(gy.max()) + 1 + join_cells
+    if H * W > 4_000_000:
+        return None
+    occ = np.zeros((H, W), np.uint8)
+    occ[gx, gy] = 1
+    grown = cv2.dilate(occ, np.ones((2 * join_cells + 1,) * 2, np.uint8)) if join_cells else occ
+    nlab, lab = cv2.connectedComponents(grown, connectivity=8, ltype=cv2.CV_32S)
+    return nlab, lab[gx, gy]
+
+
+def low_clusters(xy: np.ndarray, height: np.ndarray, min_top_m: float, cell_m: float = 0.1,
+                 join_cells: int = 1) -> np.ndarray:
+    """Per point (``xy`` (N, 2), ``height`` (N,) above the ground): True when the cluster it
+    belongs to (:func:`cell_labels`, as :func:`cluster_candidates` groups them, whatever its
+    point count) has its top (the 95th percentile by rank of its heights, a candidate's
+    ``height_m``) below ``min_top_m``. Points that are not finite are never low."""
+    p = np.asarray(xy, np.float64).reshape(-1, 2)
+    h = np.asarray(height, np.float64).reshape(-1)
+    out = np.zeros(len(p), bool)
+    ok = np.all(np.isfinite(p), axis=1) & np.isfinite(h)
+    idx = np.flatnonzero(ok)
+    if len(idx) == 0 or min_top_m <= 0:
+        return out
+    q, hq = p[idx], h[idx]
+    cm = cell_m
+    cl = cell_labels(q, cm, join_cells)
+    while cl is None:                # a pathological spread: coarser cells, as the clustering
+        cm *= 2
+        cl = cell_labels(q, cm, join_cells)
+    nlab, pl = cl
+    order = np.lexsort((hq, pl))     # by label, then height
+    pls = pl[order]
+    starts = np.flatnonzero(np.r_[True, pls[1:] != pls[:-1]])
+    counts = np.diff(np.r_[starts, len(pls)])
+    tops = hq[order][starts + np.round(0.95 * (counts - 1)).astype(np.int64)]
+    low_label = np.zeros(nlab, bool)
+    low_label[pls[starts]] = tops < min_top_m
+    out[idx] = low_label[pl]
+    return out
+
+
 def cluster_candidates(xy: np.ndarray, height: np.ndarray | None = None,
                        confidence: np.ndarray | None = None,
                        flags: dict[str, np.ndarray] | None = None,
@@ -59,21 +109,13 @@ def cluster_candidates(xy: np.ndarray, height: np.ndarray | None = None,
     c = np.ones(len(p)) if confidence is None else np.clip(pick(confidence, np.float64),
                                                             0.0, 1.0)
     fl = {k: pick(v, bool) for k, v in (flags or {}).items()}
-    g = np.floor(p / cell_m).astype(np.int64)
-    gx, gy = g[:, 0], g[:, 1]
-    gx -= gx.min() - join_cells
-    gy -= gy.min() - join_cells
-    H, W = int(gx.max()) + 1 + join_cells, int(gy.max()) + 1 + join_cells
-    if H * W > 4_000_000:            # a pathological spread: coarser cells
+    cl = cell_labels(p, cell_m, join_cells)
+    if cl is None:                   # a pathological spread: coarser cells
         return cluster_candidates(xy, height, confidence, flags, base_sources, pipeline,
                                   cell_m * 2, join_cells, min_points, contact_m,
                                   support_points, source_min_share, max_range_m,
                                   max_candidates)
-    occ = np.zeros((H, W), np.uint8)
-    occ[gx, gy] = 1
-    grown = cv2.dilate(occ, np.ones((2 * join_cells + 1,) * 2, np.uint8)) if join_cells else occ
-    nlab, lab = cv2.connectedComponents(grown, connectivity=8, ltype=cv2.CV_32S)
-    pl = lab[gx, gy]
+    nlab, pl = cl
     # one stable sort by label (a radix sort when the labels fit 16 bits): each label's points
     # are a block, its sums and extents by reduceat: no per-cluster numpy calls but the two
     # height ranks of the kept clusters (a partition of the block)

@@ -38,7 +38,7 @@ import numpy as np
 from appliance.schema import _f
 
 from .base import Detections, Pipeline, SensorInputs
-from .candidates import cluster_candidates
+from .candidates import cluster_candidates, low_clusters
 from .cue import CueOptions, LearnedCue
 from .rgbd_classes import RgbdClassModel
 from .rgbd_colour import COLOUR_SPACES, ColourClassifier, colour_features
@@ -114,6 +114,12 @@ class RgbdPipelineConfig(CueOptions):
                                          "ground the camera cannot see (paper: false)")
     min_height_m: float = _f(0.15, lo=0.0, hi=3.0, doc="a group must rise this high above the "
                                                        "ground plane (0 = any, paper)")
+    candidate_min_height: bool = _f(False, doc="every obstacle object (a 3-D cluster of the "
+                                               "projected points on 0.1 m cells, as the "
+                                               "candidates) must itself reach min_height_m; "
+                                               "lower clusters and their points are dropped (a "
+                                               "group need reach it only somewhere: low leaves "
+                                               "at a bush row's foot, docs/rgbd.md)")
     raised_surfaces: bool = _f(True, doc="level surfaces of no traversable colour between "
                                           "min_height_m and raised_max_height_m above the "
                                           "ground are obstacles (a box top seen from close)")
@@ -271,10 +277,22 @@ class RgbdPipeline(Pipeline):
 
     # ------------------------------------------------------------------------------------------
     def process(self, inputs: SensorInputs) -> Detections:
+        o: RgbdPipelineConfig = self.options
         r = self.analyse(inputs, detail=False)
-        cands = self._candidates(inputs, r)
-        return Detections(points_xy=r.points_xy, candidates=cands, debug={
-            "candidates": len(cands),
+        geo = self._geometric_points(inputs, r)
+        pts, n_low = r.points_xy, 0
+        if o.candidate_min_height and o.min_height_m > 0 and len(geo[0]):
+            # the geometric points are points_xy's first ones, in the same order (one helper,
+            # _pixels_in_range, picks both); the holes' points follow and are not judged
+            low = low_clusters(geo[0][:, :2], geo[0][:, 2], o.min_height_m, cell_m=0.1)
+            n_low = int(low.sum())
+            if n_low:
+                n_geo = len(r.points_xy) - r.hole_points
+                pts = np.concatenate([r.points_xy[:n_geo][~low], r.points_xy[n_geo:]])
+                geo = (geo[0][~low], geo[1][~low], geo[2][~low])
+        cands = self._candidates(inputs, r, geo)
+        return Detections(points_xy=pts, candidates=cands, debug={
+            "candidates": len(cands), "low_points_dropped": n_low,
             "suspected_px": int(r.suspected.sum()), "obstacle_px": int(r.obstacles.sum()),
             "groups_colour": r.groups_colour, "groups_texture": r.groups_texture,
             "groups_holes": r.groups_holes, "groups_raised": r.groups_raised,
@@ -333,29 +351,54 @@ class RgbdPipeline(Pipeline):
                         "colour, texture and depth holes back on", 100 * m)
         return share
 
-    def _candidates(self, inputs: SensorInputs, r: RgbdResult) -> tuple:
-        """The frame's obstacle groups as candidates (issue #14): the obstacle pixels (every
-        ``project_stride_px``-th) in 3-D, height above the ground plane under the mount
-        (level ground), each point flagged with the cues whose mask holds it; depth holes
-        (no 3-D but their contact line) are candidates of their own seen by colour. The
-        pixels are those that went to points_xy (after the occlusion filter)."""
+    def _range(self, calib) -> tuple[float, float]:
+        """The depth range used: the options' within the sensor's own."""
+        o: RgbdPipelineConfig = self.options
+        lo = max(o.min_range_m, calib.min_range_m) if calib.min_range_m else o.min_range_m
+        hi = min(o.max_range_m, calib.max_range_m) if calib.max_range_m else o.max_range_m
+        return lo, hi
+
+    @staticmethod
+    def _pixels_in_range(depth, mask, lo, hi, stride: int = 1):
+        """(v, u, z) of the pixels of ``mask`` (every ``stride``-th row and column) whose
+        depth is within [lo, hi], in row-major order: the points of points_xy and of the
+        candidates are these, in this order."""
+        if stride > 1:
+            v, u = np.nonzero(mask[::stride, ::stride])
+            v, u = v * stride, u * stride
+        else:
+            v, u = np.nonzero(mask)
+        z = depth[v, u]
+        ok = (z >= lo) & (z <= hi)
+        return v[ok], u[ok], z[ok]
+
+    def _geometric_points(self, inputs: SensorInputs, r: RgbdResult):
+        """(points (N, 3) in the vehicle frame, their rows v, columns u): the obstacle pixels
+        that went to points_xy (after the occlusion filter), the same ones in the same order
+        as points_xy's first N (the holes' follow them there)."""
         o: RgbdPipelineConfig = self.options
         fr = inputs.rgbd
         cam, mount = fr.calib.camera, fr.calib.mount
-        st = max(1, o.project_stride_px)
         geo = r.projected if r.projected is not None else r.obstacles
-        v, u = np.nonzero(geo[::st, ::st])
-        v, u = v * st, u * st
-        z = np.asarray(fr.depth_m, np.float32)[v, u]
-        lo, hi = o.min_range_m, o.max_range_m
-        ok = (z >= lo) & (z <= hi)
-        v, u, z = v[ok], u[ok], z[ok]
+        lo, hi = self._range(fr.calib)
+        v, u, z = self._pixels_in_range(fr.depth_m, geo, lo, hi, max(1, o.project_stride_px))
+        z = np.asarray(z, np.float32)
+        x = (u - np.float32(cam.cx)) / np.float32(cam.fx) * z
+        y = (v - np.float32(cam.cy)) / np.float32(cam.fy) * z
+        p = np.stack([x, y, z], axis=1).astype(np.float64).reshape(-1, 3)
+        return p @ mount.camera_to_vehicle().T + mount.position, v, u
+
+    def _candidates(self, inputs: SensorInputs, r: RgbdResult, geo=None) -> tuple:
+        """The frame's obstacle groups as candidates (issue #14): the obstacle pixels (every
+        ``project_stride_px``-th) in 3-D (``geo``: :meth:`_geometric_points`, by default
+        computed here), height above the ground plane under the mount (level ground), each
+        point flagged with the cues whose mask holds it; depth holes (no 3-D but their
+        contact line) are candidates of their own seen by colour. The pixels are those that
+        went to points_xy (after the occlusion filter)."""
+        o: RgbdPipelineConfig = self.options
+        pv, v, u = self._geometric_points(inputs, r) if geo is None else geo
         out: tuple = ()
-        if len(z):
-            x = (u - np.float32(cam.cx)) / np.float32(cam.fx) * z
-            y = (v - np.float32(cam.cy)) / np.float32(cam.fy) * z
-            p = np.stack([x, y, z], axis=1).astype(np.float64)
-            pv = p @ mount.camera_to_vehicle().T + mount.position
+        if len(pv):
             flags = {}
             for name, m in (("colour", None if r.geometry_only else r.colour_obstacles),
                             ("texture", r.texture_obstacles),
@@ -390,8 +433,7 @@ class RgbdPipeline(Pipeline):
         pitch = math.radians(mount.pitch_deg)
         if o.use_vehicle_pitch and inputs.vehicle is not None:
             pitch += inputs.vehicle.pitch_rad
-        lo = max(o.min_range_m, fr.calib.min_range_m) if fr.calib.min_range_m else o.min_range_m
-        hi = min(o.max_range_m, fr.calib.max_range_m) if fr.calib.max_range_m else o.max_range_m
+        lo, hi = self._range(fr.calib)
         if o.depth_median_px:
             # Kinect-class depth is quantised and noisy; a 3x3 median keeps edges (holes stay 0)
             zf = np.asarray(depth, np.float32)
@@ -608,17 +650,10 @@ class RgbdPipeline(Pipeline):
         return (p @ mount.camera_to_vehicle().T + mount.position)[:, :2].astype(np.float32)
 
     def _points(self, depth, mask, cam, mount, lo, hi, stride: int = 1) -> np.ndarray:
-        if stride > 1:
-            v, u = np.nonzero(mask[::stride, ::stride])
-            v, u = v * stride, u * stride
-        else:
-            v, u = np.nonzero(mask)
-        z = depth[v, u]
-        ok = (z >= lo) & (z <= hi)
-        if not ok.any():
+        v, u, z = self._pixels_in_range(depth, mask, lo, hi, stride)
+        if not len(z):
             return np.zeros((0, 2), np.float32)
-        return self._to_vehicle(u[ok].astype(np.float32), v[ok].astype(np.float32), z[ok],
-                                cam, mount)
+        return self._to_vehicle(u.astype(np.float32), v.astype(np.float32), z, cam, mount)
 
     def _holes(self, color, depth, surface, cam, mount, pitch, lo, hi, cfull=None):
         """Depth holes standing on the ground: a connected region of no depth of at least
