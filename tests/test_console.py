@@ -289,9 +289,10 @@ def test_tap_hands_over_at_the_bounded_rate_and_never_queues():
 CHROMIUM, CHROMEDRIVER = "/usr/bin/chromium", "/usr/bin/chromedriver"
 
 
-def _browser():
+def _browser(profile_dir):
+    """Headless chromium with its profile in ``profile_dir`` (the test's tmp_path: pytest
+    removes old ones; a tempfile.mkdtemp profile was left in /tmp by every run)."""
     import os
-    import tempfile
     from conftest import missing_tool
     if not (os.path.exists(CHROMIUM) and os.path.exists(CHROMEDRIVER)):
         missing_tool("chromium and chromium-driver (Debian) are not installed")
@@ -306,7 +307,7 @@ def _browser():
               "--disable-background-networking", "--disable-component-update", "--disable-sync",
               "--disable-dev-shm-usage", "--window-size=1400,1200"):
         o.add_argument(f)
-    o.add_argument("--user-data-dir=" + tempfile.mkdtemp(prefix="fg-chromium-"))
+    o.add_argument(f"--user-data-dir={profile_dir}")
     return webdriver.Chrome(service=Service(CHROMEDRIVER), options=o)
 
 
@@ -340,7 +341,7 @@ def test_browser_shows_state_and_device_health_of_fieldguard_run_sim(tmp_path):
             assert time.monotonic() - t0 < 120, "the daemon did not come up"
             time.sleep(0.3)
         url = st["console"]["console"]["url"]
-        driver = _browser()
+        driver = _browser(tmp_path / "chromium-profile")
         driver.get(url)
         t0 = time.monotonic()
         while True:            # the page polls once a second; the state may move meanwhile
