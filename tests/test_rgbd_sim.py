@@ -98,7 +98,7 @@ def test_candidate_min_height_drops_a_low_leaf_patch_and_keeps_the_obstacles():
     """Training seed 23 of greenhouse-coverage, where the campaign's closed-loop drive stopped
     for nothing (docs/rgbd.md): leaves overhanging the aisle at a bush row's foot make a
     0.1 m cluster 7 cm tall 1.6 m ahead, the only obstacle evidence in the frame. With
-    ``candidate_min_height`` it is dropped, points and candidate; a person 2 m ahead and a
+    ``candidate_min_height`` (the default since the twenty-third session) it is dropped, points and candidate; a person 2 m ahead and a
     0.27 m crate at the path's edge are untouched."""
     import numpy as np
 
@@ -108,7 +108,9 @@ def test_candidate_min_height_drops_a_low_leaf_patch_and_keeps_the_obstacles():
     front = 1.1
     fr, st, mat = _greenhouse_frame(23, 24.75, 0.0, out_of_the_way=("g3",))
     assert (mat == MAT_LEAF).any()
-    base = RgbdPipeline(RgbdPipelineConfig()).process(SensorInputs(0, rgbd=fr, vehicle=st))
+    assert RgbdPipelineConfig().candidate_min_height            # the default
+    base = RgbdPipeline(RgbdPipelineConfig(candidate_min_height=False)).process(
+        SensorInputs(0, rgbd=fr, vehicle=st))
     on = RgbdPipeline(RgbdPipelineConfig(candidate_min_height=True)).process(
         SensorInputs(0, rgbd=fr, vehicle=st))
     p = base.points_xy
@@ -119,7 +121,8 @@ def test_candidate_min_height_drops_a_low_leaf_patch_and_keeps_the_obstacles():
     assert on.debug["low_points_dropped"] == len(p)
     for x, y, what in ((23.1, 0.0, "person"), (17.7, 0.0, "crate")):
         fr, st, _ = _greenhouse_frame(23, x, y)
-        a = RgbdPipeline(RgbdPipelineConfig()).process(SensorInputs(0, rgbd=fr, vehicle=st))
+        a = RgbdPipeline(RgbdPipelineConfig(candidate_min_height=False)).process(
+            SensorInputs(0, rgbd=fr, vehicle=st))
         b = RgbdPipeline(RgbdPipelineConfig(candidate_min_height=True)).process(
             SensorInputs(0, rgbd=fr, vehicle=st))
         assert len(a.points_xy) > 1000, what

@@ -368,6 +368,8 @@ def cmd_variants(a) -> int:
         "- no image-bottom grounding (bottom_grounded = false)": {
             "options": {**base, "bottom_grounded": False}},
         "- no minimum height (min_height_m = 0)": {"options": {**base, "min_height_m": 0.0}},
+        "- the minimum height per group only, not per object (candidate_min_height = false)": {
+            "options": {**base, "candidate_min_height": False}},
         "- min height 0.10 m": {"options": {**base, "min_height_m": 0.10}},
         "- no depth holes (holes = false)": {"options": {**base, "holes": False}},
         "- contact 3 rows (contact_px = 3)": {"options": {**base, "contact_px": 3}},

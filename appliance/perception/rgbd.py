@@ -18,7 +18,7 @@ The defaults are the measured best on the simulated greenhouse (docs/rgbd.md), n
 the surface an obstacle stands on is low ground (not any level patch: bush tops are level too),
 ground-class pixels at ground height are traversable, texture judges only the pixels colour
 called traversable and runs on every frame, a group must rise ``min_height_m`` above the
-ground, and depth holes standing on the ground (shiny surfaces) are obstacles. ``PAPER_RULE``
+ground (and so must each 3-D cluster of its points: ``candidate_min_height``), and depth holes standing on the ground (shiny surfaces) are obstacles. ``PAPER_RULE``
 holds the options of the paper's own decision; the decision itself is one function
 (rgbd_decision.decide) with the cues as inputs.
 
@@ -114,12 +114,13 @@ class RgbdPipelineConfig(CueOptions):
                                          "ground the camera cannot see (paper: false)")
     min_height_m: float = _f(0.15, lo=0.0, hi=3.0, doc="a group must rise this high above the "
                                                        "ground plane (0 = any, paper)")
-    candidate_min_height: bool = _f(False, doc="every obstacle object (a 3-D cluster of the "
-                                               "projected points on 0.1 m cells, as the "
-                                               "candidates) must itself reach min_height_m; "
-                                               "lower clusters and their points are dropped (a "
-                                               "group need reach it only somewhere: low leaves "
-                                               "at a bush row's foot, docs/rgbd.md)")
+    candidate_min_height: bool = _f(True, doc="every obstacle object (a 3-D cluster of the "
+                                              "projected points on 0.1 m cells, as the "
+                                              "candidates) must itself reach min_height_m; "
+                                              "lower clusters and their points are dropped (a "
+                                              "group need reach it only somewhere: low leaves "
+                                              "at a bush row's foot; paper: false, "
+                                              "docs/rgbd.md)")
     raised_surfaces: bool = _f(True, doc="level surfaces of no traversable colour between "
                                           "min_height_m and raised_max_height_m above the "
                                           "ground are obstacles (a box top seen from close)")
@@ -193,7 +194,8 @@ PAPER_RULE = {
     "colour_threshold": 3.5,
     "texture": "after-colour", "texture_scope": "suspected", "texture_undefined": True,
     "contact_px": 1, "texture_contact_px": 0, "ground_max_height_m": 0.0, "ground_classes": (),
-    "bottom_grounded": False, "min_height_m": 0.0, "holes": False,
+    "bottom_grounded": False, "min_height_m": 0.0, "candidate_min_height": False,
+    "holes": False,
     "ground_class_contact": False, "texture_min_pixels": 0,
     "raised_surfaces": False, "raised_bottom_only": False,
 }
