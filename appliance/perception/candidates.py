@@ -53,24 +53,29 @@ def low_clusters(xy: np.ndarray, height: np.ndarray, min_top_m: float, cell_m: f
     p = np.asarray(xy, np.float64).reshape(-1, 2)
     h = np.asarray(height, np.float64).reshape(-1)
     out = np.zeros(len(p), bool)
-    ok = np.all(np.isfinite(p), axis=1) & np.isfinite(h)
-    idx = np.flatnonzero(ok)
-    if len(idx) == 0 or min_top_m <= 0:
+    if len(p) == 0 or min_top_m <= 0:
         return out
-    q, hq = p[idx], h[idx]
+    # (column by column: numpy's reductions along the short axis of an (N, 2) array are slow)
+    ok = np.isfinite(p[:, 0]) & np.isfinite(p[:, 1]) & np.isfinite(h)
+    if ok.all():
+        idx, q, hq = slice(None), p, h
+    else:
+        idx = np.flatnonzero(ok)
+        if len(idx) == 0:
+            return out
+        q, hq = p[idx], h[idx]
     cm = cell_m
     cl = cell_labels(q, cm, join_cells)
     while cl is None:                # a pathological spread: coarser cells, as the clustering
         cm *= 2
         cl = cell_labels(q, cm, join_cells)
     nlab, pl = cl
-    order = np.lexsort((hq, pl))     # by label, then height
-    pls = pl[order]
-    starts = np.flatnonzero(np.r_[True, pls[1:] != pls[:-1]])
-    counts = np.diff(np.r_[starts, len(pls)])
-    tops = hq[order][starts + np.round(0.95 * (counts - 1)).astype(np.int64)]
-    low_label = np.zeros(nlab, bool)
-    low_label[pls[starts]] = tops < min_top_m
+    # no sort: the height of rank r (ascending) is below the limit exactly when more than r of
+    # the cluster's heights are
+    counts = np.bincount(pl, minlength=nlab)
+    below = np.bincount(pl[hq < min_top_m], minlength=nlab)
+    r_top = np.round(0.95 * (np.maximum(counts, 1) - 1)).astype(np.int64)
+    low_label = (counts > 0) & (below > r_top)
     out[idx] = low_label[pl]
     return out
 
