@@ -286,6 +286,8 @@ def aggregate(results: list[dict]) -> dict:
         shadow["false_stops_per_hour"] = None if hours <= 0 else \
             round(shadow["false_stops"] / hours, 3)
         shadow["false_stops_per_hour_ci95"] = poisson_ci95(shadow["false_stops"], hours)
+        from appliance.campaign_shadow import differences
+        shadow["differences"] = differences(results)
     out = {
         "drives": len(results),
         "simulated_hours": round(hours, 6),
@@ -713,6 +715,9 @@ def cmd_campaign(a) -> int:
     return 0
 
 
+_DIFF_LINES = 30     # format_summary: the shadow's differences printed (all are in summary.json)
+
+
 def format_summary(s: dict) -> str:
     ci = s["false_stops_per_hour_ci95"]
     lines = [f"campaign: {s['drives']} drives ({', '.join(s['kinds'])}; seeds "
@@ -745,6 +750,14 @@ def format_summary(s: dict) -> str:
             f"{sh['false_stops_primary_only']}, only the shadow's {sh['false_stops_shadow_only']}"
             f"; true stops only the drive's {sh['true_stops_primary_only']}, only the "
             f"shadow's {sh['true_stops_shadow_only']}")
+        diffs = sh.get("differences", [])
+        if diffs:
+            lines.append("where the drive and its shadow parted (drive, simulated s, what):")
+            lines += [f"  {d['drive']:<28s} {d['t_s']:7.1f}  {d['what']}"
+                      for d in diffs[:_DIFF_LINES]]
+            if len(diffs) > _DIFF_LINES:
+                lines.append(f"  ... and {len(diffs) - _DIFF_LINES} more (summary.json: "
+                             "shadow.differences)")
     for cls, d in s["detection_distance_m"].items():
         lines.append(f"detection distance {cls}: min {d['min']} m, median {d['median']} m "
                      f"({d['stops']} stops)")

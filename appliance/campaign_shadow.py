@@ -103,4 +103,32 @@ def paired(primary: list[dict], shadow: list[dict], stop_times: dict[str, list[f
         out[f"false_stops_{side}_only_t_s"] = [e["t_s"] for e in only]
         true_only = [e for e in evs if e["kind"] == "true" and not near(times, e["t_s"])]
         out[f"true_stops_{side}_only"] = len(true_only)
+        out[f"true_stops_{side}_only_t_s"] = [e["t_s"] for e in true_only]
+    return out
+
+
+def differences(results: list[dict]) -> list[dict]:
+    """Where a campaign's drives and their shadow parted, drive by drive and in time: every
+    false or true stop only one side made (:func:`paired`) and every stop the shadow missed
+    (an obstacle in its own stop zone, no STOP), each ``{"drive", "t_s", "what"}``; the drive
+    is ``KIND-SEED`` (its folder under ``drives/``). Results written before the true stops'
+    times were kept give their false stops and misses only."""
+    whats = (("false_stops_primary_only_t_s", "false stop only the drive's own config made"),
+             ("false_stops_shadow_only_t_s", "false stop only the shadow made"),
+             ("true_stops_primary_only_t_s", "true stop only the drive's own config made"),
+             ("true_stops_shadow_only_t_s", "true stop only the shadow made"))
+    out = []
+    for r in sorted(results, key=lambda r: (r["kind"], r["seed"])):
+        sh = r.get("shadow")
+        if not sh:
+            continue
+        drive, mine = f"{r['kind']}-{r['seed']}", []
+        for key, what in whats:
+            mine += [{"drive": drive, "t_s": t, "what": what} for t in sh.get(key, [])]
+        for e in sh.get("events", []):
+            if e.get("event") == "missed":
+                mine.append({"drive": drive, "t_s": e["t_s"],
+                             "what": f"missed by the shadow: {e.get('obstacle', '?')} (the "
+                                     f"drive said {e.get('primary_state', '?')})"})
+        out += sorted(mine, key=lambda d: d["t_s"])
     return out

@@ -6,7 +6,7 @@ import json
 import pytest
 
 from appliance.campaign import Campaign, CampaignError, make_spec, run_drive
-from appliance.campaign_shadow import paired
+from appliance.campaign_shadow import differences, paired
 
 EXCLUDE_ALL = ('[zones]\nexclusion = [{x_min_m = -5.0, x_max_m = 40.0, y_min_m = -20.0, '
                'y_max_m = 20.0}]\n')
@@ -55,9 +55,14 @@ def test_a_shadow_never_drives_and_its_own_misses_are_its_own(own_shadow, tmp_pa
                                           if e["event"] == "stop" and e["kind"] != "fault"]
     assert sh["true_stops_primary_only"] == 1 and sh["true_stops_shadow_only"] == 0
     assert s["shadow"]["true_stops_primary_only"] == 1
+    assert sh["true_stops_primary_only_t_s"] == [t for t, k in _stops(events) if k == "true"]
+    assert [(d["drive"], d["what"]) for d in s["shadow"]["differences"]] == [
+        ("greenhouse-coverage-7", "true stop only the drive's own config made")]
     assert s["provenance"]["shadow_file"] == str(f)
     from appliance.campaign import format_summary
     assert "shadow (" in format_summary(s) and "only the shadow's 0" in format_summary(s)
+    assert "where the drive and its shadow parted" in format_summary(s)
+    assert "true stop only the drive's own config made" in format_summary(s)
 
 
 def test_a_bad_shadow_file_is_one_clear_error(tmp_path):
@@ -80,3 +85,31 @@ def test_paired_counts_what_only_one_side_said():
     assert p["false_stops_primary_only"] == 1 and p["false_stops_primary_only_t_s"] == [20.0]
     assert p["false_stops_shadow_only"] == 1 and p["false_stops_shadow_only_t_s"] == [14.0]
     assert p["true_stops_primary_only"] == 1 and p["true_stops_shadow_only"] == 0
+    assert p["true_stops_primary_only_t_s"] == [9.0] and p["true_stops_shadow_only_t_s"] == []
+
+
+def test_differences_list_where_each_drive_and_its_shadow_parted():
+    """Drive by drive (kind, then seed as a number), in time: the stops only one side made and
+    the shadow's misses; a drive without a shadow, or whose shadow agreed, adds nothing; a
+    result written before the true stops' times were kept still gives the rest."""
+    sh8 = {"false_stops_primary_only_t_s": [30.0], "false_stops_shadow_only_t_s": [],
+           "true_stops_primary_only_t_s": [12.5], "true_stops_shadow_only_t_s": [],
+           "events": [{"t_s": 20.0, "event": "missed", "obstacle": "g2/crate",
+                       "primary_state": "CLEAR"},
+                      {"t_s": 12.5, "event": "stop", "kind": "true"}]}
+    sh10 = {"false_stops_primary_only_t_s": [], "false_stops_shadow_only_t_s": [4.0],
+            "events": []}                                       # older: no true-stop times
+    agreed = {"false_stops_primary_only_t_s": [], "false_stops_shadow_only_t_s": [],
+              "true_stops_primary_only_t_s": [], "true_stops_shadow_only_t_s": [], "events": []}
+    results = [{"kind": "greenhouse-coverage", "seed": 10, "shadow": sh10},
+               {"kind": "greenhouse-coverage", "seed": 8, "shadow": sh8},
+               {"kind": "greenhouse-coverage", "seed": 9, "shadow": agreed},
+               {"kind": "greenhouse-coverage", "seed": 11}]
+    d = differences(results)
+    assert [(x["drive"], x["t_s"]) for x in d] == [
+        ("greenhouse-coverage-8", 12.5), ("greenhouse-coverage-8", 20.0),
+        ("greenhouse-coverage-8", 30.0), ("greenhouse-coverage-10", 4.0)]
+    assert d[0]["what"] == "true stop only the drive's own config made"
+    assert d[1]["what"] == "missed by the shadow: g2/crate (the drive said CLEAR)"
+    assert d[2]["what"] == "false stop only the drive's own config made"
+    assert d[3]["what"] == "false stop only the shadow made"
