@@ -12,6 +12,14 @@ row (the level ground's, cyan); beside it a top view of the grid's occupied cell
 ``DIR/KIND-SEED.jsonl``: per false stop the points in the stop zone (range, height, image row
 below the horizon), the novelty model's updates so far, and for the 5 cycles before it how many
 stop-zone points each cycle had (does one blip pass the two-hit rule, or does it persist?).
+
+An RGB-D drive (the greenhouse: the rgbd pipeline) is explained by its obstacle candidates
+instead: per false stop the candidates whose footprint comes within ``--margin`` m of the stop
+zone (distance of the near edge ahead of the front, side, size, height, points, the cues that
+saw them, ground contact), the vehicle's speed and heading, and the same for the 5 cycles
+before; the picture is the colour image beside a top view of those candidates (red: in the
+stop zone) and the zones. ``--at T[,T...]`` (RGB-D) also writes that record at these
+simulated times, stop or not (``"cause": "asked"``): a true stop to compare with.
 """
 from __future__ import annotations
 
@@ -39,7 +47,17 @@ def main(argv=None) -> int:
                     help="also DIR/KIND-SEED-tNN.N.npz per false stop: the stop cycle's and the "
                          "two cycles before's left/right images, disparity, dense points, "
                          "their heights, keep mask, cue masks, pose and calibration")
+    ap.add_argument("--at", default="", metavar="T[,T...]",
+                    help="RGB-D drives: also a record at these simulated seconds")
+    ap.add_argument("--margin", type=float, default=1.0,
+                    help="RGB-D drives: candidates within this of the stop zone (m)")
     a = ap.parse_args(argv)
+    try:
+        at = sorted(float(t) for t in a.at.split(",") if t.strip())
+    except ValueError:
+        print(f"why_false_stops: error: --at wants seconds separated by commas, not {a.at!r}",
+              file=sys.stderr)
+        return 2
     from appliance.campaign import load_extra_config, make_spec
     from appliance.campaign_drive import Drive
     extra = load_extra_config(a.config) if a.config else None
@@ -51,10 +69,12 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     log = open(out / f"{a.kind}-{a.seed}.jsonl", "w")
     pipe = next((p for p in d.daemon.pipelines if hasattr(p, "novelty")), None)
+    if pipe is None and any(p.name == "rgbd" for p in d.daemon.pipelines):
+        return rgbd_main(a, d, out, log, at)
     if pipe is None:
         runs = ", ".join(p.name for p in d.daemon.pipelines)
         print(f"why_false_stops: error: the drive runs {runs}, not stereo-novelty: this tool "
-              "explains the novelty pipeline's false stops (for the laser's: "
+              "explains the novelty and rgbd pipelines' false stops (for the laser's: "
               "tools/laser_false_stops.py)", file=sys.stderr)
         return 2
     z = d.zones
@@ -174,6 +194,111 @@ def main(argv=None) -> int:
     (out / f"{a.kind}-{a.seed}-events.json").write_text(json.dumps(d.events, indent=1,
                                                                    default=str))
     return 0
+
+
+def near_zone(cands, front_x_m: float, half_width_m: float, stop_len_m: float,
+              margin_m: float) -> list[dict]:
+    """The candidates whose footprint comes within ``margin_m`` of the stop zone (the front to
+    ``stop_len_m`` ahead, ``half_width_m`` either side), nearest first, each as a dict:
+    ``ahead_m`` (its near edge ahead of the front), ``y_m``, size, height, points, confidence,
+    cues, ground contact and ``in_stop_zone`` (its footprint meets the zone)."""
+    out = []
+    for c in cands:
+        x0, x1 = c.x_m - c.length_m / 2, c.x_m + c.length_m / 2
+        y0, y1 = c.y_m - c.width_m / 2, c.y_m + c.width_m / 2
+        dx = max(0.0, front_x_m - x1, x0 - (front_x_m + stop_len_m))
+        dy = max(0.0, -half_width_m - y1, y0 - half_width_m)
+        if max(dx, dy) > margin_m:
+            continue
+        out.append({"ahead_m": round(x0 - front_x_m, 2), "y_m": round(c.y_m, 2),
+                    "length_m": round(c.length_m, 2), "width_m": round(c.width_m, 2),
+                    "height_m": round(c.height_m, 2), "points": int(c.points),
+                    "confidence": round(float(c.confidence), 2), "sources": list(c.sources),
+                    "ground_contact": bool(c.ground_contact),
+                    "in_stop_zone": dx == 0.0 and dy == 0.0})
+    return sorted(out, key=lambda r: r["ahead_m"])
+
+
+def rgbd_main(a, d, out: Path, log, at: list[float]) -> int:
+    """The RGB-D drive's false stops (and the ``--at`` times): see the module's text."""
+    import math
+    z = d.zones
+    hist: deque = deque(maxlen=6)
+    n_events = [0]
+    pending = list(at)
+
+    def after(res):
+        t = round(res.index / d.rate, 1)
+        stop_len = res.verdict.stop_len_m if res.verdict is not None else z.min_stop_m
+        det = res.detections.get("rgbd")
+        cands = near_zone(det.candidates if det is not None else (), z.front_x_m,
+                          z.half_width_m, stop_len, a.margin)
+        x, y, yaw = d.vehicle.pose()
+        veh = res.inputs.vehicle
+        hist.append({"t_s": t, "state": res.output.state.value,
+                     "in_zone": [c["sources"] for c in cands if c["in_stop_zone"]]})
+        fresh = [e for e in d.events[n_events[0]:] if e.get("event") == "stop"]
+        n_events[0] = len(d.events)
+        asked = []
+        while pending and pending[0] <= t + 1e-6:
+            asked.append({"t_s": t, "place": "-", "cause": "asked", "reason":
+                          res.output.reason, "stop_zone_m": round(stop_len, 2)})
+            pending.pop(0)
+        for ev in [e for e in fresh if e["kind"] == "false"] + asked:
+            rec = {**{k_: ev[k_] for k_ in ("t_s", "place", "cause", "reason", "stop_zone_m")},
+                   "state": res.output.state.value,
+                   "vehicle": {"speed_mps": round(d.vehicle.speed, 2),
+                               "heading_deg": round(math.degrees(yaw), 1),
+                               "yaw_rate_dps": None if veh is None else
+                               round(math.degrees(veh.yaw_rate_radps), 1)},
+                   "candidates": cands, "before": list(hist)[:-1]}
+            log.write(json.dumps(rec) + "\n")
+            log.flush()
+            fr = res.inputs.rgbd
+            if fr is not None:
+                cv2.imwrite(str(out / f"{a.kind}-{a.seed}-t{ev['t_s']:05.1f}.png"),
+                            rgbd_picture(fr.color, cands, z, stop_len,
+                                         f"{a.kind} {a.seed} t={ev['t_s']} {ev['place']} "
+                                         f"{ev['cause'][:40]}"))
+
+    d.daemon.loop.on_cycle.append(after)
+    r = d.run()
+    res = r["result"]
+    print(json.dumps({k_: res.get(k_) for k_ in ("false_stops", "true_stops", "missed_stops",
+                                                 "collisions")}))
+    (out / f"{a.kind}-{a.seed}-result.json").write_text(json.dumps(res, indent=1, default=str))
+    (out / f"{a.kind}-{a.seed}-events.json").write_text(json.dumps(d.events, indent=1,
+                                                                   default=str))
+    return 0
+
+
+def rgbd_picture(color: np.ndarray, cands: list[dict], z, stop_len: float,
+                 title: str) -> np.ndarray:
+    """The colour image beside a top view (0.5 m behind the front to 4 m ahead, +-2 m; 80 px
+    a metre) of the zones (stop: red outline) and the candidates' footprints (red: in the stop
+    zone, yellow: near it), each labelled with its cues' initials."""
+    img = color if color.ndim == 3 else cv2.cvtColor(color, cv2.COLOR_GRAY2BGR)
+    img = np.ascontiguousarray(img).copy()
+    H = img.shape[0]
+    s = 80
+    top = np.zeros((int(4.5 * s), 4 * s, 3), np.uint8)
+
+    def tp(ahead, y):
+        return int(2 * s - y * s), int(4 * s - ahead * s)
+    cv2.rectangle(top, tp(stop_len, z.half_width_m), tp(0.0, -z.half_width_m), (0, 0, 200), 1)
+    cv2.line(top, tp(0.0, -2.0), tp(0.0, 2.0), (120, 120, 120), 1)       # the front
+    for c in cands:
+        col = (0, 0, 255) if c["in_stop_zone"] else (0, 220, 220)
+        p0 = tp(c["ahead_m"], c["y_m"] + c["width_m"] / 2)
+        p1 = tp(c["ahead_m"] + c["length_m"], c["y_m"] - c["width_m"] / 2)
+        cv2.rectangle(top, p0, p1, col, -1)
+        cv2.putText(top, "".join(x[0] for x in c["sources"]), (p1[0] + 3, p1[1]),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.35, col, 1)
+    top = cv2.resize(top, (int(top.shape[1] * H / top.shape[0]), H))
+    pic = np.concatenate([img, top], axis=1)
+    cv2.rectangle(pic, (0, 0), (pic.shape[1] - 1, 21), (0, 0, 0), -1)   # legible on a sky
+    cv2.putText(pic, title, (5, 15), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1)
+    return pic
 
 
 if __name__ == "__main__":
