@@ -192,3 +192,62 @@ def test_a_non_finite_yaw_rate_or_speed_never_wipes_the_grid():
         v = VehicleState(3 * DT, 3, **{"speed_mps": 0.5, "yaw_rate_radps": 0.5, **bad})
         pic = core.perceive({"rgbd": Detections(points_xy=_blob((F + 1.0, 0.0)))}, v, 3 * DT)
         assert len(pic.cells_xy) and pic.verdict.in_stop > 0     # wiped, one hit is too few
+
+
+def test_the_planned_path_s_curvature_is_used_when_asked_and_reported():
+    """``turn_source = "path"``: the vehicle state's path_curvature_1pm bends the zones,
+    whatever the speed (a vehicle standing at a turn's start will drive it), clamped like the
+    yaw rate's; a state without one (every link today) falls back to the yaw rate; the
+    default source ignores it."""
+    core = DecisionCore(_gh(follow_turn=True, turn_source="path"))
+    assert core._curvature(VehicleState(0, 0, speed_mps=0.0, path_curvature_1pm=0.8)) == \
+        pytest.approx(0.8)
+    assert core._curvature(VehicleState(0, 0, speed_mps=0.7, yaw_rate_radps=0.0,
+                                        path_curvature_1pm=-5.0)) == pytest.approx(-2.0)
+    assert core._curvature(VehicleState(0, 0, speed_mps=0.5, yaw_rate_radps=0.25)) == \
+        pytest.approx(0.5)                                   # none reported: the yaw rate's
+    assert core._curvature(VehicleState(0, 0, speed_mps=0.5, yaw_rate_radps=0.1,
+                                        path_curvature_1pm=math.nan)) == pytest.approx(0.2)
+    yaw_core = DecisionCore(_gh(follow_turn=True))
+    assert yaw_core._curvature(VehicleState(0, 0, speed_mps=0.5, yaw_rate_radps=0.0,
+                                            path_curvature_1pm=0.8)) == 0.0
+    # and in the decision: the bush end straight ahead is no stop while the planned path
+    # turns away (the yaw rate says straight), and a stop with the yaw rate's source
+    ahead = _blob((F + 1.1, 0.0))
+    for cfg, want_stop in ((_gh(follow_turn=True, turn_source="path"), False),
+                           (_gh(follow_turn=True), True)):
+        c = DecisionCore(cfg)
+        for k in range(4):
+            v = VehicleState(k * DT, k, speed_mps=0.1, yaw_rate_radps=0.0,
+                             path_curvature_1pm=1.0 / R)
+            pic = c.perceive({"rgbd": Detections(points_xy=ahead)}, v, k * DT)
+            out = c.decide(k * DT, [], pic)
+        assert (out.state is GateState.STOP) is want_stop
+        assert pic.verdict.curvature_1pm == pytest.approx(0.0 if want_stop else 1.0 / R)
+    assert ZonesConfig().turn_source == "yaw-rate"
+    with pytest.raises(ConfigError, match="turn_source"):
+        parse_config({"zones": {"turn_source": "gps"}}, "t")
+
+
+def test_the_simulator_reports_its_route_s_curvature_over_the_next_metres():
+    from drivers.sim.field import SimField
+    f = SimField("greenhouse-coverage", seed=7, sensors=())
+    v = f.vehicle
+    assert v.path_curvature() == pytest.approx(0.0, abs=1e-9)        # down the first aisle
+    assert f.vehicle_state(0, 0).path_curvature_1pm == pytest.approx(0.0, abs=1e-9)
+    # the first U-turn: somewhere along the route the next 3 m turn by the heading change
+    best = (0.0, 0.0)
+    for s in np.arange(0.0, v.path_length_m, 0.5):
+        v.s = float(s)
+        k = v.path_curvature()
+        if abs(k) > abs(best[1]):
+            best = (float(s), k)
+    s0, k = best
+    v.s = s0
+    y0 = v.pose()[2]
+    v.s = s0 + 3.0
+    y1 = v.pose()[2]
+    turn = math.atan2(math.sin(y1 - y0), math.cos(y1 - y0))
+    assert abs(k) > 0.3 and k == pytest.approx(turn / 3.0, rel=1e-6, abs=1e-9)
+    v.s = v.path_length_m                                            # the route's very end
+    assert v.path_curvature() == 0.0
