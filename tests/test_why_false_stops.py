@@ -64,3 +64,16 @@ def test_bad_at_is_one_clear_line(tmp_path):
              "--out", str(tmp_path))
     assert p.returncode == 2 and "--at wants seconds" in p.stderr
     assert "Traceback" not in p.stderr
+
+
+def test_a_stereo_drive_still_runs_and_writes_the_drive_s_result(tmp_path):
+    """The stereo-novelty path (the tool's first): a 3-s drive, no false stop in it; the
+    drive's result and events are written as the campaign writes them."""
+    p = _run("stubble-coverage", "1", "--minutes", "0.05", "--out", str(tmp_path))
+    assert p.returncode == 0, p.stderr[-2000:]
+    res = json.loads(p.stdout.strip().splitlines()[-1])
+    written = json.loads((tmp_path / "stubble-coverage-1-result.json").read_text())
+    assert res["false_stops"] == written["false_stops"] and written["kind"] == "stubble-coverage"
+    lines = (tmp_path / "stubble-coverage-1.jsonl").read_text().splitlines()
+    assert len(lines) == res["false_stops"]
+    assert isinstance(json.loads((tmp_path / "stubble-coverage-1-events.json").read_text()), list)

@@ -184,12 +184,16 @@ def main(argv=None) -> int:
                 np.savez_compressed(out / f"{a.kind}-{a.seed}-t{ev['t_s']:05.1f}.npz", **arrs)
             log.flush()
 
+    return drive_and_write(a, d, out, after)
+
+
+def drive_and_write(a, d, out: Path, after) -> int:
+    """Run the drive with ``after`` on every cycle; print its stops and collisions, and write
+    its whole result and events as the campaign does (result.json, events.json)."""
     d.daemon.loop.on_cycle.append(after)
-    r = d.run()
-    res = r["result"]
+    res = d.run()["result"]
     print(json.dumps({k_: res.get(k_) for k_ in ("false_stops", "true_stops", "missed_stops",
                                                  "collisions")}))
-    # the drive's whole result and events, as the campaign writes them (result.json, events.json)
     (out / f"{a.kind}-{a.seed}-result.json").write_text(json.dumps(res, indent=1, default=str))
     (out / f"{a.kind}-{a.seed}-events.json").write_text(json.dumps(d.events, indent=1,
                                                                    default=str))
@@ -261,15 +265,7 @@ def rgbd_main(a, d, out: Path, log, at: list[float]) -> int:
                                          f"{a.kind} {a.seed} t={ev['t_s']} {ev['place']} "
                                          f"{ev['cause'][:40]}"))
 
-    d.daemon.loop.on_cycle.append(after)
-    r = d.run()
-    res = r["result"]
-    print(json.dumps({k_: res.get(k_) for k_ in ("false_stops", "true_stops", "missed_stops",
-                                                 "collisions")}))
-    (out / f"{a.kind}-{a.seed}-result.json").write_text(json.dumps(res, indent=1, default=str))
-    (out / f"{a.kind}-{a.seed}-events.json").write_text(json.dumps(d.events, indent=1,
-                                                                   default=str))
-    return 0
+    return drive_and_write(a, d, out, after)
 
 
 def rgbd_picture(color: np.ndarray, cands: list[dict], z, stop_len: float,
