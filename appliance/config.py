@@ -66,11 +66,6 @@ class ZonesConfig:
     max_curvature_1pm: float = _f(2.0, lo=0.0, hi=10.0,
                                   doc="follow_turn: curvatures beyond this (a radius under "
                                       "1/this) are taken as this")
-    turn_source: str = _f("yaw-rate", choices=("yaw-rate", "path"),
-                          doc="follow_turn: the curvature from the yaw rate / speed, or "
-                              "('path') the planned path's the vehicle state reports "
-                              "(path_curvature_1pm; only the simulator reports one today), "
-                              "the yaw rate's when it reports none (docs/zones.md)")
 
 
 @dataclass(frozen=True)

@@ -167,14 +167,7 @@ class DecisionCore:
         z = self.cfg.zones
         if not z.follow_turn:
             return 0.0
-        kp = None if vehicle is None else vehicle.path_curvature_1pm
-        if z.turn_source == "path" and kp is not None and math.isfinite(kp):
-            # the planned path's: known whatever the speed (a vehicle standing at the start of
-            # a turn will drive it)
-            self.curvature_1pm = max(-z.max_curvature_1pm, min(z.max_curvature_1pm, kp))
-            if abs(self.curvature_1pm) < STRAIGHT_1PM:
-                self.curvature_1pm = 0.0
-        elif vehicle is not None and vehicle.speed_mps >= self.TURN_MIN_MPS:
+        if vehicle is not None and vehicle.speed_mps >= self.TURN_MIN_MPS:
             k = vehicle.yaw_rate_radps / vehicle.speed_mps
             if not math.isfinite(k):
                 k = 0.0                   # a broken yaw rate: the straight zones

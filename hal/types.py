@@ -138,10 +138,6 @@ class VehicleState(_Stamped):
     roll_rad: float = 0.0
     pitch_rad: float = 0.0
     yaw_rad: float = 0.0
-    # the mean curvature (1/m, left positive) of the path the vehicle's controller is about
-    # to drive over the next few metres, where the controller says it; None: not known. Only
-    # the simulator reports it today (no link reads a planned path yet: docs/zones.md)
-    path_curvature_1pm: float | None = None
 
 
 class GateState(enum.Enum):

@@ -100,21 +100,6 @@ class Vehicle:
         b = float(np.interp(max(self.s - ds, 0.0), self._s, self._yaw))
         return (a - b) / (2 * ds)
 
-    PATH_PREVIEW_M = 3.0      # path_curvature: over the front's 1.1 m and a 2 m stop zone
-
-    def path_curvature(self, preview_m: float = PATH_PREVIEW_M) -> float:
-        """The mean curvature (1/m, left positive) of the planned path over the next
-        ``preview_m`` of it from the vehicle's place: the heading change / the distance (at the
-        path's end, over what is left; 0 at its very end). What a controller that knows its
-        route could report (the safety driver's detours are not in it)."""
-        s0 = min(max(self.s, 0.0), self.path_length_m)
-        s1 = min(s0 + preview_m, self.path_length_m)
-        if s1 - s0 < 1e-6:
-            return 0.0
-        a = float(np.interp(s0, self._s, self._yaw))
-        b = float(np.interp(s1, self._s, self._yaw))
-        return (b - a) / (s1 - s0)
-
     # ---- attitude -----------------------------------------------------------------------------
     def attitude(self) -> tuple[float, float, float]:
         """(roll_rad, pitch_rad, z_m): from the ground under the wheels + suspension bounce."""
