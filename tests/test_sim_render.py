@@ -251,3 +251,29 @@ def test_compiled_obstacle_shadows_and_laser_bound_match_the_reference(engine):
     from drivers.sim import fastrender as fr
     bound = np.array([fr.coarse_max(kp["Gc"], gp, x, y) for x, y in zip(xs[:2000], ys[:2000])])
     assert np.all(f.world.ground(xs[:2000], ys[:2000]) <= bound + 1e-6)
+
+
+def test_compiled_value_noise_is_the_reference_everywhere_on_the_tile():
+    """The compiled value noise reads the same four lattice values as the numpy reference
+    (world.value_noise): the padded tile's rows are 513 long. It read the lower row one
+    column to the right (+514 / +515), and at the tile's last cell one float past the end of
+    the array: whatever lay there in memory, so the same drive rendered differently from run
+    to run (twenty-fourth session, docs/proving-ground.md "Determinism")."""
+    from drivers.sim import fastrender as fr
+    from drivers.sim.world import _noise_tile, value_noise
+    cell, salt = 0.37, 0xC10D
+    tile = _noise_tile(salt)
+    rng = np.random.default_rng(5)
+    x = rng.uniform(-300.0, 300.0, 400)
+    y = rng.uniform(-300.0, 300.0, 400)
+    # and every corner of the lattice's period, the last cell's above all
+    k = np.array([0.0, 510.5, 511.25, 511.75, 511.999, 1023.5])
+    x = np.concatenate([x, np.repeat(k, len(k)) * cell])
+    y = np.concatenate([y, np.tile(k, len(k)) * cell])
+    ref = value_noise(x, y, cell, salt)
+    got = np.array([fr.value_noise(tile, float(a), float(b), cell) for a, b in zip(x, y)])
+    tiles = np.stack([tile, tile])
+    got_k = np.array([fr.value_noise_k(tiles, 1, float(a), float(b), cell)
+                      for a, b in zip(x, y)])
+    assert np.abs(got - ref).max() < 1e-4
+    assert np.abs(got_k - ref).max() < 1e-4
