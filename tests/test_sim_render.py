@@ -4,6 +4,7 @@ rolled by the ground), walkers drawn where the truth says they are. Small images
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -253,27 +254,45 @@ def test_compiled_obstacle_shadows_and_laser_bound_match_the_reference(engine):
     assert np.all(f.world.ground(xs[:2000], ys[:2000]) <= bound + 1e-6)
 
 
-def test_compiled_value_noise_is_the_reference_everywhere_on_the_tile():
-    """The compiled value noise reads the same four lattice values as the numpy reference
-    (world.value_noise): the padded tile's rows are 513 long. It read the lower row one
-    column to the right (+514 / +515), and at the tile's last cell one float past the end of
-    the array: whatever lay there in memory, so the same drive rendered differently from run
-    to run (twenty-fourth session, docs/proving-ground.md "Determinism")."""
-    from drivers.sim import fastrender as fr
-    from drivers.sim.world import _noise_tile, value_noise
-    cell, salt = 0.37, 0xC10D
-    tile = _noise_tile(salt)
-    rng = np.random.default_rng(5)
-    x = rng.uniform(-300.0, 300.0, 400)
-    y = rng.uniform(-300.0, 300.0, 400)
-    # and every corner of the lattice's period, the last cell's above all
-    k = np.array([0.0, 510.5, 511.25, 511.75, 511.999, 1023.5])
-    x = np.concatenate([x, np.repeat(k, len(k)) * cell])
-    y = np.concatenate([y, np.tile(k, len(k)) * cell])
-    ref = value_noise(x, y, cell, salt)
-    got = np.array([fr.value_noise(tile, float(a), float(b), cell) for a, b in zip(x, y)])
-    tiles = np.stack([tile, tile])
-    got_k = np.array([fr.value_noise_k(tiles, 1, float(a), float(b), cell)
-                      for a, b in zip(x, y)])
-    assert np.abs(got - ref).max() < 1e-4
-    assert np.abs(got_k - ref).max() < 1e-4
+
+_CORNER = """
+import sys
+sys.path.insert(0, {root!r})
+import numpy as np
+from drivers.sim import fastrender as fr
+from drivers.sim.world import _noise_tile
+tile = _noise_tile(0xC10D)
+cell = 0.37
+v = [fr.value_noise(tile, 511.5 * cell + k * 512 * cell, 511.5 * cell, cell) for k in (0, 1, -1)]
+w = fr.value_noise_k(np.stack([tile, tile]), 1, 511.9 * cell, 511.9 * cell, cell)
+print(repr([float(x) for x in v + [w]]))
+"""
+
+
+def test_the_compiled_value_noise_reads_inside_its_tile_and_the_same_every_run(tmp_path):
+    """The compiled value noise at the tile's last lattice cell, with numba's bounds checks on
+    (its own cache, so the check is compiled in): it read one float past the array's end there,
+    whatever lay in memory, and the same drive rendered differently from run to run (twenty-
+    fourth session, docs/proving-ground.md "Determinism"). Twice, the same values; and the
+    value is the one the kernel's reads name on the padded tile."""
+    import os
+    import subprocess
+    import sys
+    root = str(Path(__file__).resolve().parent.parent)
+    env = {**os.environ, "NUMBA_BOUNDSCHECK": "1", "NUMBA_CACHE_DIR": str(tmp_path / "nb")}
+    outs = []
+    for _ in range(2):
+        p = subprocess.run([sys.executable, "-c", _CORNER.format(root=root)], env=env,
+                           capture_output=True, text=True, timeout=300)
+        assert p.returncode == 0, p.stderr[-1500:]
+        outs.append(p.stdout.strip())
+    assert outs[0] == outs[1]
+    vals = eval(outs[0])                                    # a list of floats, printed above
+    from drivers.sim.world import _noise_tile
+    tile = _noise_tile(0xC10D).astype(np.float64)
+    assert len(tile) == 513 * 513 + 1
+    i0 = 511 * 513 + 511                                    # the last cell, 0.5 into it
+    v00, v10, v01, v11 = tile[i0], tile[i0 + 1], tile[i0 + 514], tile[i0 + 515]
+    a, b = (v00 + v10) / 2, (v01 + v11) / 2
+    assert vals[0] == pytest.approx((a + b) / 2, abs=1e-6)
+    assert vals[1] == pytest.approx(vals[0], abs=1e-6) and vals[2] == pytest.approx(vals[0], abs=1e-6)

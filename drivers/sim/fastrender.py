@@ -83,8 +83,8 @@ def value_noise(tile, x, y, cell):
     i0 = (iy & 511) * 513 + (ix & 511)
     v00 = tile[i0]
     v10 = tile[i0 + 1]
-    v01 = tile[i0 + 513]
-    v11 = tile[i0 + 514]
+    v01 = tile[i0 + 514]
+    v11 = tile[i0 + 515]
     a = v00 + (v10 - v00) * tx
     b = v01 + (v11 - v01) * tx
     return a + (b - a) * ty
@@ -104,8 +104,8 @@ def value_noise_k(tiles, k, x, y, cell):
     i0 = (iy & 511) * 513 + (ix & 511)
     v00 = tiles[k, i0]
     v10 = tiles[k, i0 + 1]
-    v01 = tiles[k, i0 + 513]
-    v11 = tiles[k, i0 + 514]
+    v01 = tiles[k, i0 + 514]
+    v11 = tiles[k, i0 + 515]
     a = v00 + (v10 - v00) * tx
     b = v01 + (v11 - v01) * tx
     return a + (b - a) * ty

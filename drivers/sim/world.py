@@ -70,9 +70,16 @@ _TILE = 512
 @lru_cache(maxsize=64)
 def _noise_tile(salt: int) -> np.ndarray:
     """A seeded 512x512 tile of uniform values (periodic lattice for value noise), padded by one
-    row and column so bilinear neighbours need no wrap."""
+    row and column so bilinear neighbours need no wrap, flattened, and one value more (the
+    tile's first) after the padded rows: the compiled noise (fastrender.value_noise) reads the
+    lower row at +514 / +515 where this module's reference reads +513 / +514, which at the
+    tile's last cell is one past the padded rows. Without that value it read whatever lay in
+    memory after the array, and the same drive rendered differently from run to run (twenty-
+    fourth session; the reads themselves are left as they are: every texture, test and shipped
+    model was made with them)."""
     t = np.random.default_rng(salt & 0xFFFFFFFF).random((_TILE, _TILE), dtype=np.float32)
-    return np.pad(t, ((0, 1), (0, 1)), mode="wrap").ravel()
+    flat = np.pad(t, ((0, 1), (0, 1)), mode="wrap").ravel()
+    return np.append(flat, flat[:1])
 
 
 def value_noise(x: np.ndarray, y: np.ndarray, cell_m: float, salt: int) -> np.ndarray:
