@@ -64,6 +64,9 @@ def test_bad_at_is_one_clear_line(tmp_path):
              "--out", str(tmp_path))
     assert p.returncode == 2 and "--at wants seconds" in p.stderr
     assert "Traceback" not in p.stderr
+    p = _run("stubble-coverage", "1", "--minutes", "0.05", "--at", "1.0", "--out", str(tmp_path))
+    assert p.returncode == 2 and "--at is for RGB-D drives" in p.stderr
+    assert "Traceback" not in p.stderr
 
 
 def test_a_stereo_drive_still_runs_and_writes_the_drive_s_result(tmp_path):

@@ -73,9 +73,13 @@ def main(argv=None) -> int:
         return rgbd_main(a, d, out, log, at)
     if pipe is None:
         runs = ", ".join(p.name for p in d.daemon.pipelines)
-        print(f"why_false_stops: error: the drive runs {runs}, not stereo-novelty: this tool "
-              "explains the novelty and rgbd pipelines' false stops (for the laser's: "
+        print(f"why_false_stops: error: the drive runs {runs}, not stereo-novelty or rgbd: this "
+              "tool explains those pipelines' false stops (for the laser's: "
               "tools/laser_false_stops.py)", file=sys.stderr)
+        return 2
+    if at:
+        print("why_false_stops: error: --at is for RGB-D drives (a stereo drive's records are "
+              "written at its false stops)", file=sys.stderr)
         return 2
     z = d.zones
     hist: deque = deque(maxlen=6)
@@ -237,7 +241,7 @@ def rgbd_main(a, d, out: Path, log, at: list[float]) -> int:
         det = res.detections.get("rgbd")
         cands = near_zone(det.candidates if det is not None else (), z.front_x_m,
                           z.half_width_m, stop_len, a.margin)
-        x, y, yaw = d.vehicle.pose()
+        yaw = d.vehicle.pose()[2]
         veh = res.inputs.vehicle
         hist.append({"t_s": t, "state": res.output.state.value,
                      "in_zone": [c["sources"] for c in cands if c["in_stop_zone"]]})
