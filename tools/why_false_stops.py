@@ -209,21 +209,24 @@ def near_zone(cands, front_x_m: float, half_width_m: float, stop_len_m: float,
     """The candidates whose footprint comes within ``margin_m`` of the stop zone (the front to
     ``stop_len_m`` ahead, ``half_width_m`` either side), nearest first, each as a dict:
     ``ahead_m`` (its near edge ahead of the front), ``y_m``, size, height, points, confidence,
-    cues, ground contact and ``in_stop_zone`` (its footprint meets the zone)."""
+    cues, ground contact and ``in_stop_zone`` (its footprint meets the zone: the box's own
+    zone test, appliance.zones.footprint_meets)."""
+    from appliance.zones import footprint_meets
+    stop = {"x_min_m": front_x_m, "x_max_m": front_x_m + stop_len_m,
+            "half_width_m": half_width_m}
+    near = {"x_min_m": front_x_m - margin_m, "x_max_m": front_x_m + stop_len_m + margin_m,
+            "half_width_m": half_width_m + margin_m}
     out = []
     for c in cands:
-        x0, x1 = c.x_m - c.length_m / 2, c.x_m + c.length_m / 2
-        y0, y1 = c.y_m - c.width_m / 2, c.y_m + c.width_m / 2
-        dx = max(0.0, front_x_m - x1, x0 - (front_x_m + stop_len_m))
-        dy = max(0.0, -half_width_m - y1, y0 - half_width_m)
-        if max(dx, dy) > margin_m:
+        if not footprint_meets(c.x_m, c.y_m, c.length_m, c.width_m, near):
             continue
-        out.append({"ahead_m": round(x0 - front_x_m, 2), "y_m": round(c.y_m, 2),
+        out.append({"ahead_m": round(c.x_m - c.length_m / 2 - front_x_m, 2),
+                    "y_m": round(c.y_m, 2),
                     "length_m": round(c.length_m, 2), "width_m": round(c.width_m, 2),
                     "height_m": round(c.height_m, 2), "points": int(c.points),
                     "confidence": round(float(c.confidence), 2), "sources": list(c.sources),
                     "ground_contact": bool(c.ground_contact),
-                    "in_stop_zone": dx == 0.0 and dy == 0.0})
+                    "in_stop_zone": footprint_meets(c.x_m, c.y_m, c.length_m, c.width_m, stop)})
     return sorted(out, key=lambda r: r["ahead_m"])
 
 
