@@ -113,6 +113,7 @@ def differences(results: list[dict]) -> list[dict]:
     (an obstacle in its own stop zone, no STOP), each ``{"drive", "t_s", "what"}``; the drive
     is ``KIND-SEED`` (its folder under ``drives/``). Results written before the true stops'
     times were kept give their false stops and misses only."""
+    from appliance.campaign import drive_id
     whats = (("false_stops_primary_only_t_s", "false stop only the drive's own config made"),
              ("false_stops_shadow_only_t_s", "false stop only the shadow made"),
              ("true_stops_primary_only_t_s", "true stop only the drive's own config made"),
@@ -122,7 +123,7 @@ def differences(results: list[dict]) -> list[dict]:
         sh = r.get("shadow")
         if not sh:
             continue
-        drive, mine = f"{r['kind']}-{r['seed']}", []
+        drive, mine = drive_id(r["kind"], r["seed"]), []
         for key, what in whats:
             mine += [{"drive": drive, "t_s": t, "what": what} for t in sh.get(key, [])]
         for e in sh.get("events", []):
