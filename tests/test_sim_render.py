@@ -265,7 +265,8 @@ tile = _noise_tile(0xC10D)
 cell = 0.37
 v = [fr.value_noise(tile, 511.5 * cell + k * 512 * cell, 511.5 * cell, cell) for k in (0, 1, -1)]
 w = fr.value_noise_k(np.stack([tile, tile]), 1, 511.9 * cell, 511.9 * cell, cell)
-print(repr([float(x) for x in v + [w]]))
+import json
+print(json.dumps([float(x) for x in v + [w]]))
 """
 
 
@@ -287,7 +288,8 @@ def test_the_compiled_value_noise_reads_inside_its_tile_and_the_same_every_run(t
         assert p.returncode == 0, p.stderr[-1500:]
         outs.append(p.stdout.strip())
     assert outs[0] == outs[1]
-    vals = eval(outs[0])                                    # a list of floats, printed above
+    import json
+    vals = json.loads(outs[0])
     from drivers.sim.world import _noise_tile
     tile = _noise_tile(0xC10D).astype(np.float64)
     assert len(tile) == 513 * 513 + 1
