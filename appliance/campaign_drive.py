@@ -266,7 +266,8 @@ class Drive:
             sdata = deep_merge(self.shadow_config, {"sim": {"scene": self.kind,
                                                             "seed": self.seed}})
             self.shadow = Shadow(sim_config(parse_config(sdata, f"<shadow {self.kind} "
-                                                               f"{self.seed}>"), self.kind))
+                                                               f"{self.seed}>"), self.kind),
+                                 primary_cfg=cfg)
             self._shadow_events: list[dict] = []
             self._shadow_counts = {"true": 0, "false": 0, "fault": 0}
             self._shadow_missed = 0
@@ -476,6 +477,9 @@ class Drive:
                 "false_stops": self._shadow_counts["false"],
                 "fault_stops": self._shadow_counts["fault"],
                 "missed_stops": self._shadow_missed,
+                # "shared": the drive's own detections (the same perception), "own": its own
+                # pipelines run on the drive's inputs
+                "perception": "shared" if self.shadow.shared else "own",
                 **paired(own, stops, self._stop_times),
                 "events": self._shadow_events}
 

@@ -25,11 +25,18 @@ class Shadow:
     """The pipelines and decision core of ``cfg`` (a parsed Config), stepped on each cycle's
     inputs of another loop (:meth:`step`)."""
 
-    def __init__(self, cfg):
+    def __init__(self, cfg, primary_cfg=None):
         from appliance.decision import DecisionCore
         from appliance.perception import make_pipeline
         self.cfg = cfg
-        self.pipelines = [make_pipeline(n, cfg) for n in cfg.perception.pipelines]
+        # a shadow whose perception is the drive's own (the same pipelines with the same
+        # options: only the decision differs) takes the drive's detections instead of running
+        # the pipelines again on the same inputs: the same detections (the pipelines are
+        # deterministic, docs/proving-ground.md "Determinism") for none of the cost, which on a
+        # camera drive is most of it
+        self.shared = primary_cfg is not None and cfg.perception == primary_cfg.perception
+        self.pipelines = ([] if self.shared else
+                          [make_pipeline(n, cfg) for n in cfg.perception.pipelines])
         self.optional = set(cfg.perception.optional)
         self.core = DecisionCore(cfg)
 
@@ -38,8 +45,12 @@ class Shadow:
         the primary's faults that are not its own pipelines' or fusion's (a stale camera is
         stale for both) plus the shadow's own."""
         inputs = res.inputs
-        faults = [f for f in res.faults if not f.startswith(("pipeline ", "fusion failed"))]
-        detections = {}
+        if self.shared:                        # the drive's own pipelines' detections and faults
+            faults = [f for f in res.faults if not f.startswith("fusion failed")]
+            detections = dict(res.detections)
+        else:
+            faults = [f for f in res.faults if not f.startswith(("pipeline ", "fusion failed"))]
+            detections = {}
         for p in self.pipelines:
             optional = p.name in self.optional
             missing = p.missing(inputs)

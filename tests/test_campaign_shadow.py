@@ -24,7 +24,29 @@ def own_shadow():
     return run_drive(spec)
 
 
-def test_a_shadow_of_the_drives_own_config_agrees_on_every_cycle(own_shadow):
+@pytest.fixture(scope="module")
+def own_pipelines_shadow():
+    """The same drive; the shadow's perception differs in a table the greenhouse's RGB-D box
+    does not use (the laser's range), so it runs its own pipelines on the drive's inputs."""
+    spec = make_spec("greenhouse-coverage", 7, 0.35, 0.25)
+    spec["shadow"] = {**spec["config"], "perception": {
+        **spec["config"].get("perception", {}),
+        "laser": {"max_range_m": 29.0}}}
+    return run_drive(spec)
+
+
+def test_a_shadow_with_the_drives_perception_shares_its_detections(own_shadow):
+    assert own_shadow["result"]["shadow"]["perception"] == "shared"
+
+
+@pytest.mark.parametrize("which", ["own_shadow", "own_pipelines_shadow"])
+def test_a_shadow_of_the_drives_own_config_agrees_on_every_cycle(which, request):
+    """With the drive's detections, and with its own pipelines run on the drive's inputs: the
+    same stops, cycle for cycle."""
+    run = request.getfixturevalue(which)
+    assert run["result"]["shadow"]["perception"] == ("shared" if which == "own_shadow"
+                                                     else "own")
+    own_shadow = run
     r = own_shadow["result"]
     sh = r["shadow"]
     stops = _stops(own_shadow["events"])
