@@ -127,6 +127,20 @@ class GridConfig:
                                         "0 = anywhere (made the greenhouse's own phantoms at "
                                         "the end bays: docs/rgbd.md)")
 
+    laser_confirm_by: tuple = _f((), doc="cell decision: a laser return inside a camera "
+                                         "pipeline's view this cycle makes a STOP only where "
+                                         "that camera confirms it by one of these: \"novelty\", "
+                                         "\"learned\", \"depth\" (its masks at the return's "
+                                         "place in the image), \"points\" (its obstacle points "
+                                         "within laser_confirm_radius_m); an unconfirmed return "
+                                         "still makes a SLOW. Returns outside every camera's "
+                                         "view or range, and every return in a cycle without a "
+                                         "camera, count as before. [] = off (docs/proving-"
+                                         "ground.md 'The laser confirmed by the camera')")
+    laser_confirm_radius_m: float = _f(0.3, lo=0.05, hi=2.0,
+                                       doc="laser_confirm_by \"points\": a camera point in the "
+                                           "same or a neighbouring square of this side")
+
 
 @dataclass(frozen=True)
 class SourceWeights:
@@ -513,6 +527,14 @@ def _cross_check(cfg: Config, file: str) -> None:
         if bad:
             raise ConfigError(f"unknown pipeline {bad[0]!r}; known: "
                               f"{', '.join(known_pipelines())}", file=file, key=f"grid.{key}")
+    from appliance.perception.view import CONFIRM_NAMES
+    bad = [n for n in g.laser_confirm_by if n not in CONFIRM_NAMES]
+    if bad:
+        raise ConfigError(f"unknown camera evidence {bad[0]!r}; known: "
+                          f"{', '.join(CONFIRM_NAMES)}", file=file, key="grid.laser_confirm_by")
+    if g.laser_confirm_by and cfg.tracking.enabled:
+        raise ConfigError("laser_confirm_by works with the cell decision only (tracking.enabled "
+                          "= false)", file=file, key="grid.laser_confirm_by")
     t = cfg.tracking
     if t.far_m <= t.near_m or t.large_m <= t.small_m:
         raise ConfigError("needs far_m > near_m and large_m > small_m", file=file, key="tracking")

@@ -145,6 +145,24 @@ def decision_name(tc) -> str:
     return "tracks" if tc.enabled else ("cells+movers" if tc.movers else "cells")
 
 
+def near_squares(xy: np.ndarray, other_xy: np.ndarray, side_m: float) -> np.ndarray:
+    """Per point of ``xy``: does a point of ``other_xy`` lie in the same square of side
+    ``side_m`` (a grid from the origin) or in one of its eight neighbours?"""
+    a = np.floor(np.asarray(xy, np.float64).reshape(-1, 2) / side_m).astype(np.int64)
+    b = np.floor(np.asarray(other_xy, np.float64).reshape(-1, 2) / side_m).astype(np.int64)
+    out = np.zeros(len(a), bool)
+    if not len(a) or not len(b):
+        return out
+    span = 1 << 31
+    keys = np.unique((b[:, 0] + (span >> 1)) * span + (b[:, 1] + (span >> 1)))
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            k = (a[:, 0] + dx + (span >> 1)) * span + (a[:, 1] + dy + (span >> 1))
+            i = np.minimum(np.searchsorted(keys, k), len(keys) - 1)
+            out |= keys[i] == k
+    return out
+
+
 class DecisionCore:
     """Fusion, tracking, zones and the gate for one box (one instance per loop or per run)."""
 
@@ -158,6 +176,7 @@ class DecisionCore:
         self.gate = SafetyGate(cfg.gate, cfg.zones)
         self.last: Picture | None = None
         self.curvature_1pm = 0.0          # the arc the zones bend along ([zones] follow_turn)
+        self.laser_unconfirmed = 0        # laser returns no camera confirmed this cycle
 
     # below this speed the yaw rate says nothing of the path: the last curvature is kept (a
     # vehicle stopped in a turn drives on along it: its steering has not moved)
@@ -210,10 +229,42 @@ class DecisionCore:
                                   debug={**d.debug, "below_ground_min": int((~keep).sum())})
         return out
 
+    def laser_confirmed(self, detections: dict[str, Detections]
+                        ) -> tuple[np.ndarray, np.ndarray] | None:
+        """``[grid] laser_confirm_by``: (the laser's returns a camera pipeline had in view this
+        cycle and did not confirm, the rest), each (N, 2) in the vehicle frame; None when off,
+        without laser returns, without a camera view this cycle, or without the returns'
+        heights (``use_attitude``: a gravity frame, not the camera's)."""
+        g = self.cfg.grid
+        names = g.laser_confirm_by
+        d = detections.get("laser")
+        if not names or d is None or d.points_z is None or not len(d.points_xy):
+            return None
+        cams = [o for n, o in detections.items()
+                if n != "laser" and o is not None and getattr(o, "view", None) is not None]
+        if not cams:
+            return None
+        xy = np.asarray(d.points_xy, np.float64).reshape(-1, 2)
+        xyz = np.column_stack([xy, np.asarray(d.points_z, np.float64)])
+        masks = [n for n in names if n != "points"]
+        inside = np.zeros(len(xy), bool)
+        ok = np.zeros(len(xy), bool)
+        for o in cams:
+            ins, raised = o.view.look(xyz, masks)
+            inside |= ins
+            ok |= raised
+            if "points" in names and len(o.points_xy):
+                ok |= near_squares(xy, o.points_xy, g.laser_confirm_radius_m)
+        unconf = inside & ~ok
+        self.laser_unconfirmed = int(unconf.sum())
+        return xy[unconf], xy[~unconf]
+
     def perceive(self, detections: dict[str, Detections], vehicle: VehicleState | None,
                  now_ns: int) -> Picture:
         """Fuse this cycle's detections (the loop's "fusion" stage)."""
         detections = self.laser_on_ground(detections)
+        self.laser_unconfirmed = 0
+        laser_split = self.laser_confirmed(detections)
         pts = [d.points_xy for d in detections.values() if d is not None and len(d.points_xy)]
         pts_xy = np.concatenate(pts) if pts else np.zeros((0, 2), np.float32)
         g = self.cfg.grid
@@ -235,6 +286,14 @@ class DecisionCore:
                 if now:                      # ... or hit by a laser return this cycle
                     recurs |= self.grid.hit_by(grid_cells, np.concatenate(now))
                 conf = recurs if conf is None else (conf & recurs)
+            if laser_split is not None and len(laser_split[0]):
+                # ... and a cell that only unconfirmed laser returns hit this cycle is a SLOW
+                others = [o.points_xy for n, o in detections.items()
+                          if n != "laser" and o is not None and len(o.points_xy)]
+                others.append(laser_split[1])
+                slow = self.grid.hit_by(grid_cells, laser_split[0])
+                slow &= ~self.grid.hit_by(grid_cells, np.concatenate(others))
+                conf = ~slow if conf is None else (conf & ~slow)
             pic = Picture(grid_cells, assess(grid_cells, speed, self.cfg.zones, conf,
                                              cell_m=g.cell_m, curvature_1pm=kappa),
                           speed, grid_cells)

@@ -61,6 +61,10 @@ class Detections:
     # ``z(x, y)`` and ``source``, perception/ground.py), for the other pipelines' points
     # (the laser's ``ground_min_m``, appliance/decision.py)
     ground: object = None
+    # ... and what this camera saw where, for another pipeline's points this frame (an object
+    # with ``look(xyz, names)``: appliance/perception/view.py; the laser's confirmation by a
+    # camera, ``[grid] laser_confirm_by`` in appliance/decision.py)
+    view: object = None
 
     @staticmethod
     def empty() -> "Detections":

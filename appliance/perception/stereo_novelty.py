@@ -24,6 +24,7 @@ from .cue import CueOptions, LearnedCue
 from .candidates import cluster_candidates, stalk_points
 from .ground import GroundModel
 from .novelty import NoveltyDetector, dilate_cells, mask_to_camera, obstacle_cells
+from .view import CameraView
 from .stereo import (StereoConfig, StereoPipeline, band_mask, check_matcher, dedupe_cells, drop_dark,
                      disparity_regions, downscale, local_heights, make_matcher, mask_boxes,
                      match_factor, merge_strips, point_confidence, points_from_disparity,
@@ -621,7 +622,11 @@ class StereoNoveltyPipeline(Pipeline):
             for_laser = self._laser_ground if self._laser_ground is not None else ground
             if getattr(for_laser, "source", "level") == "level":
                 for_laser = None                         # no fit this frame: nothing to say
-        return Detections(points_xy=xy, candidates=cands, ground=for_laser, debug={
+        # what this camera saw where, for the laser's returns ([grid] laser_confirm_by): the
+        # masks at the descriptor resolution, half a novelty cell of slack up and down
+        view = CameraView(self._source_masks, Kd if kd > 1 else K, M, fr.calib.mount.position,
+                          o.max_range_m, slack_px=res.cell_px // 2)
+        return Detections(points_xy=xy, candidates=cands, ground=for_laser, view=view, debug={
             "ground": ground.to_dict(), "candidates": len(cands),
             "boot": None if boot is None else {"candidates": len(boot["candidates"]),
                                                "excluded_cells": int(boot["exclude"].sum())},
