@@ -36,3 +36,23 @@ def test_acceptance_seeds_and_bad_seeds_are_refused():
     assert p.returncode == 2 and "acceptance" in p.stderr and not p.stdout
     p = _run("stubble-coverage", "one")
     assert p.returncode == 2 and "seeds must look like" in p.stderr
+
+
+def test_confirm_says_what_the_camera_leaves_unconfirmed(tmp_path):
+    """With stereo-novelty beside the laser: the stubble returns the camera had in view, and
+    the share of them it confirms neither by novelty nor by its own points."""
+    cfg = tmp_path / "sl.toml"
+    cfg.write_text('[perception]\npipelines = ["stereo-novelty", "laser"]\n')
+    p = _run("stubble-coverage", "1", "--minutes", "0.3", "--config", str(cfg),
+             "--confirm", "novelty,points", "--json")
+    assert p.returncode == 0, p.stderr[-2000:]
+    c = json.loads(p.stdout)["confirm"]
+    assert c["by"] == ["novelty", "points"]
+    assert c["stubble_in_view"] > 20 and 0.0 <= c["stubble_unconfirmed"] <= 1.0
+    assert c["stubble_stop_zone_in_view"] <= c["stubble_in_view"]
+
+
+def test_an_unknown_confirmation_is_one_line():
+    p = _run("stubble-coverage", "1", "--confirm", "colour")
+    assert p.returncode == 2 and "unknown camera evidence 'colour'" in p.stderr
+    assert len(p.stderr.strip().splitlines()) == 1

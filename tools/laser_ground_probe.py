@@ -18,6 +18,12 @@ a rule would remove for each T:
   entirely (every kept return of that obstacle that cycle below T), and the median distance
   from the front at which each obstacle was first seen, with and without the rule.
 
+``--confirm novelty,learned,points`` (with a config that runs a camera pipeline beside the
+laser) adds what ``[grid] laser_confirm_by`` would say of the same returns: the share of the
+stubble returns the camera had in view that it leaves unconfirmed (a SLOW instead of a STOP),
+and per obstacle class the sightings it does not confirm (docs/proving-ground.md "The laser
+confirmed by the camera").
+
 Training seeds only (< 1000): a tool for deciding what to build, not a score.
 """
 from __future__ import annotations
@@ -77,7 +83,36 @@ def drive_each(tool: str, seeds: list[int], probe) -> list:
     return out
 
 
-def probe_drive(kind: str, seed: int, minutes: float, extra: dict) -> dict:
+def confirmed(res, loc: np.ndarray, mount, names, radius_m: float) -> np.ndarray:
+    """Per laser return (``loc``: scanner-frame points): 1.0 where a camera pipeline's view
+    this cycle confirms it as ``[grid] laser_confirm_by = names`` would (appliance/decision.py),
+    0.0 where a camera had it in view and did not, nan where no camera had it in view (or
+    ``names`` is empty)."""
+    from appliance.decision import near_squares
+    out = np.full(len(loc), np.nan)
+    cams = [o for n, o in res.detections.items()
+            if n != "laser" and o is not None and getattr(o, "view", None) is not None]
+    if not names or not cams or not len(loc):
+        return out
+    c, s = np.cos(np.radians(mount.yaw_deg)), np.sin(np.radians(mount.yaw_deg))
+    xy = np.stack([mount.x_m + c * loc[:, 0] - s * loc[:, 1],
+                   mount.y_m + s * loc[:, 0] + c * loc[:, 1]], 1)
+    z = (loc @ mount.rotation().T)[:, 2] + mount.z_m      # where the pipeline puts the plane
+    xyz = np.column_stack([xy, z])
+    inside = np.zeros(len(loc), bool)
+    ok = np.zeros(len(loc), bool)
+    for o in cams:
+        ins, raised = o.view.look(xyz, [n for n in names if n != "points"])
+        inside |= ins
+        ok |= raised
+        if "points" in names and len(o.points_xy):
+            ok |= near_squares(xy, o.points_xy, radius_m)
+    out[inside] = ok[inside].astype(float)
+    return out
+
+
+def probe_drive(kind: str, seed: int, minutes: float, extra: dict,
+                confirm_by: tuple = (), radius: float = 0.3) -> dict:
     from appliance.campaign import make_spec
     from appliance.campaign_drive import Drive
     from appliance.perception.laser import segment_widths
@@ -89,9 +124,12 @@ def probe_drive(kind: str, seed: int, minutes: float, extra: dict) -> dict:
     world = f.scene.world
     lcfg = d.cfg.perception.laser
     # (height above the ground, in the stop zone, the same above the camera's ground or nan)
-    stubble: list[tuple[float, bool, float]] = []
+    # (height above the ground, in the stop zone, the same above the camera's ground or nan,
+    #  the camera's confirmation: 1 / 0 / nan as ``confirmed``)
+    stubble: list[tuple[float, bool, float, float]] = []
     # (class, obstacle, ahead, max h, max h above the camera's ground or nan)
-    sightings: list[tuple[str, int, float, float, float]] = []
+    # ... + (confirmed by a camera on any return, in the stop zone)
+    sightings: list[tuple[str, int, float, float, float, float, bool]] = []
 
     def after(res):
         scan = res.inputs.laser
@@ -129,13 +167,18 @@ def probe_drive(kind: str, seed: int, minutes: float, extra: dict) -> dict:
             he = plane_z[near] - cam.z(g.mount.x_m + loc[near, 0], vy[near])
         else:
             he = np.full(len(h), np.nan)
+        conf = confirmed(res, loc[near], g.mount, confirm_by, radius)
         st = mat == MAT_STUBBLE
-        stubble.extend(zip(h[st].tolist(), (a[st] <= stop_len).tolist(), he[st].tolist()))
+        stubble.extend(zip(h[st].tolist(), (a[st] <= stop_len).tolist(), he[st].tolist(),
+                           conf[st].tolist()))
         for k in np.unique(mat[mat >= MAT_OBSTACLE]):
             m = mat == k
             o = world.obstacles[int(k) - MAT_OBSTACLE]
+            c = conf[m]
             sightings.append((o.cls, int(k) - MAT_OBSTACLE, float(a[m].min()),
-                              float(h[m].max()), float(np.max(he[m]))))
+                              float(h[m].max()), float(np.max(he[m])),
+                              float("nan") if np.isnan(c).all() else float(np.nanmax(c)),
+                              bool(np.any(a[m] <= stop_len))))
 
     d.daemon.loop.on_cycle.append(after)
     res = d.run()["result"]
@@ -197,6 +240,41 @@ def summarise(drives: list[dict], estimate: bool = False) -> dict:
             "rows": rows}
 
 
+def summarise_confirm(drives: list[dict]) -> dict:
+    """What ``[grid] laser_confirm_by`` would say of the returns the camera had in view: the
+    share of stubble returns it leaves unconfirmed (a SLOW instead of a STOP), in the path and
+    in the stop zone, and per obstacle class the share of (obstacle, cycle) sightings with no
+    confirmed return, and the obstacles that had returns in the stop zone in view and were
+    never confirmed there."""
+    st = np.array([r[3] for dr in drives for r in dr["stubble"]], float)
+    stz = np.array([r[3] for dr in drives for r in dr["stubble"] if r[1]], float)
+    out = {"stubble_in_view": int(np.isfinite(st).sum()),
+           "stubble_unconfirmed": (round(float(np.mean(st[np.isfinite(st)] == 0)), 3)
+                                   if np.isfinite(st).any() else None),
+           "stubble_stop_zone_in_view": int(np.isfinite(stz).sum()),
+           "stubble_stop_zone_unconfirmed": (round(float(np.mean(stz[np.isfinite(stz)] == 0)), 3)
+                                             if np.isfinite(stz).any() else None),
+           "classes": {}}
+    for dr in drives:
+        zone: dict = {}
+        for cls, k, ahead, _h, _he, conf, in_zone in dr["sightings"]:
+            b = out["classes"].setdefault(cls, {"sightings_in_view": 0, "unconfirmed": 0,
+                                               "zone_objects": 0, "zone_never_confirmed": 0})
+            if np.isnan(conf):
+                continue
+            b["sightings_in_view"] += 1
+            b["unconfirmed"] += int(conf == 0)
+            if in_zone:
+                zone[(cls, k)] = max(zone.get((cls, k), 0.0), conf)
+        for (cls, _k), best in zone.items():
+            out["classes"][cls]["zone_objects"] += 1
+            out["classes"][cls]["zone_never_confirmed"] += int(best == 0)
+    for b in out["classes"].values():
+        n = b["sightings_in_view"]
+        b["unconfirmed"] = round(b["unconfirmed"] / n, 3) if n else None
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("kind")
@@ -207,17 +285,41 @@ def main(argv=None) -> int:
     ap.add_argument("--estimate", action="store_true",
                     help="the table with the camera's ground (the config must run "
                          "stereo-novelty with ground_for_laser) instead of the true one")
+    ap.add_argument("--confirm", default="",
+                    help="also what [grid] laser_confirm_by = these (comma-separated, e.g. "
+                         "novelty,learned,points) would leave unconfirmed (the config must "
+                         "run a camera pipeline beside the laser)")
     a = ap.parse_args(argv)
+    from appliance.perception.view import CONFIRM_NAMES
+    confirm_by = tuple(n for n in a.confirm.split(",") if n)
+    bad = [n for n in confirm_by if n not in CONFIRM_NAMES]
+    if bad:
+        print(f"laser_ground_probe: --confirm: unknown camera evidence {bad[0]!r}; known: "
+              f"{', '.join(CONFIRM_NAMES)}", file=sys.stderr)
+        return 2
     setup = training_laser_setup("laser_ground_probe", a.seeds, a.config)
     if setup is None:
         return 2
     seeds, extra = setup
     drives = drive_each("laser_ground_probe", seeds,
-                        lambda s: probe_drive(a.kind, s, a.minutes, extra))
+                        lambda s: probe_drive(a.kind, s, a.minutes, extra, confirm_by))
     summary = summarise(drives, a.estimate)
+    if confirm_by:
+        summary["confirm"] = {"by": list(confirm_by), **summarise_confirm(drives)}
     if a.json:
         print(json.dumps(summary))
         return 0
+    if confirm_by:
+        c = summary["confirm"]
+        pct = (lambda v: "-" if v is None else f"{100 * v:.0f} %")
+        print(f"laser_confirm_by {list(confirm_by)}: stubble returns a camera had in view "
+              f"{c['stubble_in_view']}, unconfirmed {pct(c['stubble_unconfirmed'])}; in the "
+              f"stop zone {c['stubble_stop_zone_in_view']}, unconfirmed "
+              f"{pct(c['stubble_stop_zone_unconfirmed'])}")
+        for cls, b in sorted(c["classes"].items()):
+            print(f"  {cls}: sightings in view {b['sightings_in_view']}, unconfirmed "
+                  f"{pct(b['unconfirmed'])}; in the stop zone {b['zone_objects']} objects, "
+                  f"never confirmed there {b['zone_never_confirmed']}")
     print(f"{summary['drives']} drives, {summary['stubble_returns']} stubble returns kept in "
           f"the path ({summary['stubble_stop_zone_returns']} in the stop zone), plane above "
           f"the {summary['ground']} ground at them p10/p50/p90 "
