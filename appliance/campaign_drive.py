@@ -404,10 +404,15 @@ class Drive:
         d2 = ((c[:, None, :] - pts[None, :, :]) ** 2).sum(-1)
         return bool(d2.min() <= self.hold_m ** 2)
 
-    def _pipelines_in_stop(self, res, stop_len: float, curvature_1pm: float = 0.0) -> list[str]:
+    def _pipelines_in_stop(self, res, stop_len: float, curvature_1pm: float = 0.0,
+                           detections: dict | None = None) -> list[str]:
+        """The pipelines with a point in the stop zone this cycle (``detections``, or the
+        drive's own in ``res``)."""
         z = self.zones
         names = []
-        for n, det in res.detections.items():
+        for n, det in (res.detections if detections is None else detections).items():
+            if det is None:
+                continue
             p = det.points_xy
             if len(p):
                 p = to_path_frame(p, curvature_1pm, z.front_x_m)
@@ -441,9 +446,13 @@ class Drive:
                       self._shadow_episode is not None):
             fault = not obstacle_stop and not out.reason.startswith("holding")
             kind = "fault" if fault and faults else ("true" if in_stop else "false")
-            cause = false_cause(truth) if kind == "false" else cause_of(out.reason)
+            pipes = self._pipelines_in_stop(res, s_len, s_kappa, self.shadow.last_detections)
+            cause = cause_of(out.reason)
+            if kind == "false":                # named as the drive's own false stops are
+                cause = false_cause(truth) + (f" [{'+'.join(pipes)}]" if pipes else "")
             ev = {"t_s": round(t_s, 1), "event": "stop", "kind": kind, "reason": out.reason,
                   "cause": cause, "place": place, "stop_zone_m": round(s_len, 2),
+                  "pipelines": pipes,
                   "primary_state": res.output.state.value, "duration_s": None}
             self._shadow_counts[kind] += 1
             self._shadow_events.append(ev)

@@ -39,6 +39,7 @@ class Shadow:
                           [make_pipeline(n, cfg) for n in cfg.perception.pipelines])
         self.optional = set(cfg.perception.optional)
         self.core = DecisionCore(cfg)
+        self.last_detections: dict = {}
 
     def step(self, res):
         """The shadow's (GateOutput, Picture or None, faults) for the primary loop's cycle ``res``:
@@ -70,6 +71,7 @@ class Shadow:
             log.exception("shadow fusion failed")
             faults.append(f"fusion failed: {type(exc).__name__}: {exc}")
             picture = None
+        self.last_detections = detections      # what its pipelines said this cycle (for scoring)
         stamps = [getattr(s, "stamp_ns", None) for s in (inputs.stereo, inputs.rgbd, inputs.laser)]
         stamps = [s for s in stamps if s is not None]
         out = self.core.decide(res.stamp_ns, faults, picture, min(stamps) if stamps else None)

@@ -52,6 +52,9 @@ def test_a_shadow_of_the_drives_own_config_agrees_on_every_cycle(which, request)
     stops = _stops(own_shadow["events"])
     assert len(stops) == 1 and stops[0][1] == "true" and 18.0 <= stops[0][0] <= 19.0  # crate
     assert _stops(sh["events"]) == stops
+    # the pipelines with points in the stop zone at each onset, named alike on both sides
+    assert [e["pipelines"] for e in sh["events"] if e["event"] == "stop"] == \
+        [e["pipelines"] for e in run["events"] if e["event"] == "stop"] == [["rgbd"]]
     assert (sh["true_stops"], sh["false_stops"], sh["missed_stops"]) == \
         (r["true_stops"], r["false_stops"], r["missed_stops"])
     assert sh["false_stops_primary_only"] == sh["false_stops_shadow_only"] == 0
