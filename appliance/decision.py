@@ -163,6 +163,25 @@ def near_squares(xy: np.ndarray, other_xy: np.ndarray, side_m: float) -> np.ndar
     return out
 
 
+def camera_confirms(cams: list, xyz: np.ndarray, names, radius_m: float
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """(inside, confirmed) per vehicle-frame point ``xyz`` (N, 3): in the view of one of the
+    camera pipelines' detections ``cams`` (each with a ``view``), and confirmed by one of them
+    through ``names`` (their masks at the point's pixel, or "points": one of their obstacle
+    points in the same or a neighbouring square of side ``radius_m``)."""
+    xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
+    masks = [n for n in names if n != "points"]
+    inside = np.zeros(len(xyz), bool)
+    ok = np.zeros(len(xyz), bool)
+    for o in cams:
+        ins, raised = o.view.look(xyz, masks)
+        inside |= ins
+        ok |= raised
+        if "points" in names and len(o.points_xy):
+            ok |= near_squares(xyz[:, :2], o.points_xy, radius_m)
+    return inside, ok
+
+
 class DecisionCore:
     """Fusion, tracking, zones and the gate for one box (one instance per loop or per run)."""
 
@@ -246,15 +265,7 @@ class DecisionCore:
             return None
         xy = np.asarray(d.points_xy, np.float64).reshape(-1, 2)
         xyz = np.column_stack([xy, np.asarray(d.points_z, np.float64)])
-        masks = [n for n in names if n != "points"]
-        inside = np.zeros(len(xy), bool)
-        ok = np.zeros(len(xy), bool)
-        for o in cams:
-            ins, raised = o.view.look(xyz, masks)
-            inside |= ins
-            ok |= raised
-            if "points" in names and len(o.points_xy):
-                ok |= near_squares(xy, o.points_xy, g.laser_confirm_radius_m)
+        inside, ok = camera_confirms(cams, xyz, names, g.laser_confirm_radius_m)
         unconf = inside & ~ok
         self.laser_unconfirmed = int(unconf.sum())
         return xy[unconf], xy[~unconf]

@@ -34,6 +34,34 @@ def test_the_first_laser_false_stop_of_training_seed_1_is_a_stubble_tuft(tmp_pat
     assert summary["by_hit"]["stubble"]["returns"] == len(zone)
 
 
+def test_with_a_camera_beside_it_each_return_says_what_the_camera_made_of_it(tmp_path):
+    """The same stop with stereo-novelty beside the laser: each return in view says whether
+    the camera confirmed it ([grid] laser_confirm_by's judgement), and --picture draws it."""
+    cfg = tmp_path / "paper-stereo.toml"
+    cfg.write_text('[perception]\npipelines = ["stereo-novelty", "laser"]\n'
+                   '[perception.laser]\nmin_width_m = 0.0\n[grid]\nstop_recur_now = ["laser"]\n')
+    pics = tmp_path / "pics"
+    p = _run("stubble-coverage", "1", "--minutes", "0.45", "--config", str(cfg),
+             "--picture", str(pics))
+    assert p.returncode == 0, p.stderr[-2000:]
+    lines = [json.loads(x) for x in p.stdout.splitlines() if x.startswith("{")]
+    stops = lines[:-1]
+    assert stops
+    rows = [h for s in stops for h in s["returns"]]
+    assert {h["camera"] for h in rows} <= {"confirmed", "unconfirmed", "out of view"}
+    # the returns ahead of the front are in the camera's view
+    assert any(h["camera"] != "out of view" for h in rows)
+    import cv2
+    files = sorted(pics.glob("stubble-coverage-1-*.png"))
+    assert len(files) == len(stops)
+    img = cv2.imread(str(files[0]))
+    assert img is not None and img.shape[:2] == (512, 640)
+    # a return drawn red (unconfirmed) or green (confirmed): pure BGR dots on the field
+    red = (img[..., 2] == 255) & (img[..., 1] == 0) & (img[..., 0] == 0)
+    green = (img[..., 1] == 200) & (img[..., 0] == 0) & (img[..., 2] == 0)
+    assert red.sum() + green.sum() > 20
+
+
 def test_acceptance_seeds_are_refused():
     p = _run("stubble-coverage", "1000")
     assert p.returncode == 2 and "acceptance" in p.stderr and not p.stdout

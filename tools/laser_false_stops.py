@@ -12,6 +12,10 @@ it), how high above the real ground at that place the beam hit, what it hit (gro
 an obstacle) and the height of what stands at that point (a tuft's stalks are ragged per 2 cm:
 the beam may have hit a taller neighbour); and the vehicle's pitch and roll. Prints one
 JSON line per false stop and a summary (returns by material, their heights above the ground).
+With a camera pipeline beside the laser (``--config``), each return also says whether that
+camera confirmed it as ``[grid] laser_confirm_by`` would (the config's list, or novelty,
+learned and points), and ``--picture DIR`` writes, per false stop, the camera's image with
+its novelty mask and the returns drawn on it (green: confirmed, red: not).
 Training seeds only (< 1000): this is a tool for finding causes.
 """
 from __future__ import annotations
@@ -26,12 +30,46 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import numpy as np  # noqa: E402
 
 
+def draw_picture(path: Path, image: np.ndarray, view, xyz: np.ndarray, inside, conf,
+                 hits: list[str], title: str) -> None:
+    """The camera's image with its novelty mask tinted blue and the laser returns ``xyz``
+    (vehicle frame) drawn where they project: green where the camera confirmed them, red
+    where it had them in view and did not, each labelled with what the beam really hit."""
+    import cv2
+    img = image.copy() if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+    h, w = img.shape[:2]
+    m = view.masks.get("novelty")
+    if m is not None:
+        big = cv2.resize(m, (w, h), interpolation=cv2.INTER_NEAREST) > 0
+        img[big] = (0.6 * img[big] + 0.4 * np.array([255, 80, 0])).astype(np.uint8)
+    u, v, _ = view.project(xyz)
+    sx, sy = w / float(view.shape[1]), h / float(view.shape[0])
+    for i in np.flatnonzero(inside):
+        col = (0, 200, 0) if conf[i] else (0, 0, 255)
+        p = (int(u[i] * sx), int(v[i] * sy))
+        cv2.circle(img, p, 4, col, -1)
+    labelled = set()
+    for i in np.flatnonzero(inside):
+        if hits[i] in labelled:
+            continue
+        labelled.add(hits[i])
+        cv2.putText(img, hits[i], (int(u[i] * sx) + 6, int(v[i] * sy) - 6),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
+    cv2.putText(img, title, (8, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1,
+                cv2.LINE_AA)
+    cv2.putText(img, "blue: novel; laser returns green: camera confirms, red: it does not",
+                (8, h - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
+    cv2.imwrite(str(path), img)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("kind")
     ap.add_argument("seed", type=int)
     ap.add_argument("--minutes", type=float, default=2.0)
     ap.add_argument("--config", default=None, help="TOML merged over the drive's config")
+    ap.add_argument("--picture", default=None, metavar="DIR",
+                    help="with a camera pipeline: one PNG per false stop into DIR")
     a = ap.parse_args(argv)
     if a.seed >= 1000:
         print("laser_false_stops: seeds >= 1000 are the acceptance set; look for causes on "
@@ -52,6 +90,10 @@ def main(argv=None) -> int:
     spec = make_spec(a.kind, a.seed, a.minutes, 0.5, extra)
     d = Drive(a.kind, a.seed, a.minutes, config_data=spec["config"], stereo_scale=0.5)
     d.build()
+    from appliance.decision import camera_confirms
+    confirm_by = d.cfg.grid.laser_confirm_by or ("novelty", "learned", "points")
+    if a.picture:
+        Path(a.picture).mkdir(parents=True, exist_ok=True)
     z, f = d.zones, d.field
     world = f.scene.world
     n_ev = [0]
@@ -78,17 +120,35 @@ def main(argv=None) -> int:
         ground = world.ground(wx, wy)
         top, mat = world.height(wx, wy)
         roll, pitch, _ = f.vehicle.attitude()
+        # the camera's say on each of them, as [grid] laser_confirm_by would judge it
+        cams = [o for n, o in res.detections.items()
+                if n != "laser" and o is not None and getattr(o, "view", None) is not None]
+        plane = (loc @ g.mount.rotation().T)[:, 2] + g.mount.z_m
+        xyz = np.column_stack([vx, vy, plane])[near]
+        inside = conf = None
+        if cams:
+            inside, conf = camera_confirms(cams, xyz, confirm_by, d.cfg.grid.laser_confirm_radius_m)
         for ev in fresh:
             if ev["kind"] != "false":
                 continue
             rows = []
-            for x, y, hz, gz, tz, m in zip(vx[near], vy[near], wp[near, 2], ground, top, mat):
+            for i, (x, y, hz, gz, tz, m) in enumerate(zip(vx[near], vy[near], wp[near, 2],
+                                                          ground, top, mat)):
                 what = ("obstacle" if m >= MAT_OBSTACLE
                         else materials.get(int(m), str(int(m))))
-                rows.append({"x_m": round(float(x), 2), "y_m": round(float(y), 2),
-                             "in_stop_zone": bool(x - z.front_x_m <= stop_len),
-                             "hit_above_ground_m": round(float(hz - gz), 2),
-                             "hit": what, "top_above_ground_m": round(float(tz - gz), 2)})
+                row = {"x_m": round(float(x), 2), "y_m": round(float(y), 2),
+                       "in_stop_zone": bool(x - z.front_x_m <= stop_len),
+                       "hit_above_ground_m": round(float(hz - gz), 2),
+                       "hit": what, "top_above_ground_m": round(float(tz - gz), 2)}
+                if inside is not None:
+                    row["camera"] = ("confirmed" if conf[i] else "unconfirmed") if inside[i] \
+                        else "out of view"
+                rows.append(row)
+            if a.picture and cams and res.inputs.stereo is not None:
+                path = Path(a.picture) / f"{a.kind}-{a.seed}-{ev['t_s']:.1f}s.png"
+                draw_picture(path, res.inputs.stereo.left, cams[0].view, xyz, inside, conf,
+                             [r["hit"] for r in rows],
+                             f"{a.kind} {a.seed}, false stop at {ev['t_s']:.1f} s")
             rec = {"t_s": ev["t_s"], "duration_s": ev.get("duration_s"),
                    "pitch_deg": round(float(np.degrees(pitch)), 2),
                    "roll_deg": round(float(np.degrees(roll)), 2),

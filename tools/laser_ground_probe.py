@@ -88,7 +88,7 @@ def confirmed(res, loc: np.ndarray, mount, names, radius_m: float) -> np.ndarray
     this cycle confirms it as ``[grid] laser_confirm_by = names`` would (appliance/decision.py),
     0.0 where a camera had it in view and did not, nan where no camera had it in view (or
     ``names`` is empty)."""
-    from appliance.decision import near_squares
+    from appliance.decision import camera_confirms
     out = np.full(len(loc), np.nan)
     cams = [o for n, o in res.detections.items()
             if n != "laser" and o is not None and getattr(o, "view", None) is not None]
@@ -98,15 +98,7 @@ def confirmed(res, loc: np.ndarray, mount, names, radius_m: float) -> np.ndarray
     xy = np.stack([mount.x_m + c * loc[:, 0] - s * loc[:, 1],
                    mount.y_m + s * loc[:, 0] + c * loc[:, 1]], 1)
     z = (loc @ mount.rotation().T)[:, 2] + mount.z_m      # where the pipeline puts the plane
-    xyz = np.column_stack([xy, z])
-    inside = np.zeros(len(loc), bool)
-    ok = np.zeros(len(loc), bool)
-    for o in cams:
-        ins, raised = o.view.look(xyz, [n for n in names if n != "points"])
-        inside |= ins
-        ok |= raised
-        if "points" in names and len(o.points_xy):
-            ok |= near_squares(xy, o.points_xy, radius_m)
+    inside, ok = camera_confirms(cams, np.column_stack([xy, z]), names, radius_m)
     out[inside] = ok[inside].astype(float)
     return out
 
