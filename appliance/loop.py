@@ -335,6 +335,10 @@ class ApplianceLoop:
                 "stop_zone_m": None if v is None else round(v.stop_len_m, 2),
                 "grid_cells": int(len(self.core.last.grid_cells_xy)) if self.core.last else None,
                 "decision": decision_name(self.cfg.tracking),
+                # [grid] laser_confirm_by: laser returns a camera had in view this cycle and
+                # did not confirm (a SLOW, not a STOP); None when off
+                "laser_unconfirmed": (self.core.laser_unconfirmed
+                                      if self.cfg.grid.laser_confirm_by else None),
             }
             # the confirmed tracks (the obstacles the box holds), nearest first
             out["tracks"] = [t.to_dict() for t in sorted(

@@ -182,3 +182,30 @@ def test_stereo_novelty_hands_a_view_whose_masks_are_its_own():
     err = np.hypot(u[inside] - px[keep][inside, 0] * k / kd,
                    vv[inside] - px[keep][inside, 1] * k / kd)
     assert np.median(err) < 1.0, np.percentile(err, [50, 90])
+
+
+def test_a_box_set_to_confirm_its_laser_without_a_camera_still_stops_for_it():
+    """The laser alone (the shipped pipelines) with laser_confirm_by set: no camera can
+    confirm or refuse, so a post in the path stops the loop as before; status says how many
+    returns went unconfirmed (none)."""
+    from appliance.config import Config, GateConfig, GridConfig
+    from hal.types import GateState
+    from tests.test_decision import DT, make_loop
+    cfg = Config(gate=GateConfig(hold_off_s=0.3), grid=GridConfig(laser_confirm_by=("novelty",)))
+    clock, loop, laser, link = make_loop(cfg)
+    for _ in range(6):
+        loop.cycle()
+        clock.advance(DT)
+    assert loop.gate.state is GateState.CLEAR
+    assert loop.status()["obstacles"]["laser_unconfirmed"] == 0
+    laser.put_obstacle(4.0, 0.0)
+    states = []
+    for _ in range(8):
+        states.append(loop.cycle().output.state)
+        clock.advance(DT)
+    assert states[-1] is GateState.STOP and link.sent[-1].state is GateState.STOP
+    assert loop.status()["obstacles"]["laser_unconfirmed"] == 0
+    # off: the key says so
+    clock, loop, laser, link = make_loop(Config())
+    loop.cycle()
+    assert loop.status()["obstacles"]["laser_unconfirmed"] is None
