@@ -45,6 +45,7 @@ class Shadow:
         """The shadow's (GateOutput, Picture or None, faults) for the primary loop's cycle ``res``:
         the primary's faults that are not its own pipelines' or fusion's (a stale camera is
         stale for both) plus the shadow's own."""
+        from appliance.loop import run_pipeline
         inputs = res.inputs
         if self.shared:                        # the drive's own pipelines' detections and faults
             faults = [f for f in res.faults if not f.startswith("fusion failed")]
@@ -59,12 +60,11 @@ class Shadow:
                 if not optional:
                     faults.append(f"pipeline {p.name}: no fresh {', '.join(missing)} data")
                 continue
-            try:
-                detections[p.name] = p.process(inputs)
-            except Exception as exc:           # as the loop: a fault (STOP), never a crash
-                log.exception("shadow pipeline %s failed", p.name)
-                if not optional:
-                    faults.append(f"pipeline {p.name} failed: {type(exc).__name__}: {exc}")
+            d, msg = run_pipeline(p, inputs, "shadow pipeline")  # as the loop: a fault
+            if d is not None:
+                detections[p.name] = d
+            elif not optional:
+                faults.append(msg)
         try:
             picture = self.core.perceive(detections, inputs.vehicle, res.stamp_ns)
         except Exception as exc:

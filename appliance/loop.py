@@ -50,6 +50,21 @@ class CycleResult:
     tracks: list = field(default_factory=list)    # appliance.tracking.TrackView, every track
 
 
+def run_pipeline(p, inputs: SensorInputs, what: str = "pipeline") -> tuple:
+    """(``p``'s detections for ``inputs``, None) or (None, the fault's text): a pipeline that
+    raises, or answers with what cannot be fused, is a fault, never a crash of the caller (the
+    loop; a campaign's shadow)."""
+    try:
+        d = p.process(inputs)
+        bad = malformed(d)
+        if bad:
+            raise ValueError(f"malformed detections: {bad}")
+        return d, None
+    except Exception as exc:
+        log.exception("%s %s failed", what, p.name)
+        return None, f"pipeline {p.name} failed: {type(exc).__name__}: {exc}"
+
+
 def malformed(d) -> str | None:
     """Why a pipeline's answer cannot be fused (None when it can): obstacle points must be
     finite (N, 2) numbers. A NaN would fall out of the grid, i.e. be an obstacle not seen."""
@@ -183,17 +198,11 @@ class ApplianceLoop:
                 self.skipped[p.name] = self.skipped.get(p.name, 0) + 1
                 continue
             ps = self.clock.now_ns()
-            try:
-                d = p.process(inputs)
-                bad = malformed(d)
-                if bad:
-                    raise ValueError(f"malformed detections: {bad}")
+            d, msg = run_pipeline(p, inputs)
+            if d is not None:
                 detections[p.name] = d
-            except Exception as exc:
-                log.exception("pipeline %s failed", p.name)
-                msg = f"pipeline {p.name} failed: {type(exc).__name__}: {exc}"
-                if not optional:
-                    faults.append(msg)
+            elif not optional:
+                faults.append(msg)
             took = (self.clock.now_ns() - ps) / 1e6
             self._est_ms[p.name] = 0.8 * self._est_ms.get(p.name, took) + 0.2 * took
         mark("perception", t0, w0)
