@@ -141,8 +141,13 @@ def differences(results: list[dict]) -> list[dict]:
             mine += [{"drive": drive, "t_s": t, "what": what} for t in sh.get(key, [])]
         for e in sh.get("events", []):
             if e.get("event") == "missed":
+                # a miss the drive shared (it did not say STOP either) is no difference: said
+                # so, so that the list reads as where the two parted
+                state = e.get("primary_state", "?")
+                head = ("missed by the shadow only" if state == "STOP" else
+                        "missed by the shadow, not stopped for by the drive either")
                 mine.append({"drive": drive, "t_s": e["t_s"],
-                             "what": f"missed by the shadow: {e.get('obstacle', '?')} (the "
-                                     f"drive said {e.get('primary_state', '?')})"})
+                             "what": f"{head}: {e.get('obstacle', '?')} (the drive said "
+                                     f"{state})"})
         out += sorted(mine, key=lambda d: d["t_s"])
     return out

@@ -121,6 +121,8 @@ def test_differences_list_where_each_drive_and_its_shadow_parted():
            "true_stops_primary_only_t_s": [12.5], "true_stops_shadow_only_t_s": [],
            "events": [{"t_s": 20.0, "event": "missed", "obstacle": "g2/crate",
                        "primary_state": "CLEAR"},
+                      {"t_s": 25.0, "event": "missed", "obstacle": "g3/person",
+                       "primary_state": "STOP"},
                       {"t_s": 12.5, "event": "stop", "kind": "true"}]}
     sh10 = {"false_stops_primary_only_t_s": [], "false_stops_shadow_only_t_s": [4.0],
             "events": []}                                       # older: no true-stop times
@@ -133,8 +135,12 @@ def test_differences_list_where_each_drive_and_its_shadow_parted():
     d = differences(results)
     assert [(x["drive"], x["t_s"]) for x in d] == [
         ("greenhouse-coverage-8", 12.5), ("greenhouse-coverage-8", 20.0),
-        ("greenhouse-coverage-8", 30.0), ("greenhouse-coverage-10", 4.0)]
+        ("greenhouse-coverage-8", 25.0), ("greenhouse-coverage-8", 30.0),
+        ("greenhouse-coverage-10", 4.0)]
     assert d[0]["what"] == "true stop only the drive's own config made"
-    assert d[1]["what"] == "missed by the shadow: g2/crate (the drive said CLEAR)"
-    assert d[2]["what"] == "false stop only the drive's own config made"
-    assert d[3]["what"] == "false stop only the shadow made"
+    # a miss the drive shared is said to be one; a miss where the drive stopped is the shadow's
+    assert d[1]["what"] == ("missed by the shadow, not stopped for by the drive either: "
+                            "g2/crate (the drive said CLEAR)")
+    assert d[2]["what"] == "missed by the shadow only: g3/person (the drive said STOP)"
+    assert d[3]["what"] == "false stop only the drive's own config made"
+    assert d[4]["what"] == "false stop only the shadow made"
