@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 
 from appliance.config import Config
+from appliance.perception.view import pixels_of
 from appliance.zones import stop_length, zone_outline
 from hal.types import GateState
 
@@ -72,14 +73,10 @@ def project_points(pts: np.ndarray, calib_camera, mount) -> np.ndarray:
     """Vehicle-frame 3-D points (N, 3) -> pixel coordinates (N, 2), NaN behind the camera."""
     if not len(pts):
         return np.zeros((0, 2))
-    r = mount.camera_to_vehicle()
-    pc = (pts - mount.position) @ r            # vehicle -> optical (R^T applied row-wise)
-    z = pc[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = calib_camera.fx * pc[:, 0] / z + calib_camera.cx
-        v = calib_camera.fy * pc[:, 1] / z + calib_camera.cy
+    u, v, front = pixels_of(pts, calib_camera.fx, calib_camera.fy, calib_camera.cx,
+                            calib_camera.cy, mount.camera_to_vehicle(), mount.position, 0.1)
     uv = np.c_[u, v]
-    uv[z <= 0.1] = np.nan
+    uv[~front] = np.nan
     return uv
 
 

@@ -17,6 +17,20 @@ MASK_NAMES = ("novelty", "learned", "depth")
 CONFIRM_NAMES = MASK_NAMES + ("points",)
 
 
+def pixels_of(pts: np.ndarray, fx: float, fy: float, cx: float, cy: float, R: np.ndarray,
+              t: np.ndarray, min_depth_m: float = 0.1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(u, v, in_front) of vehicle-frame points ``pts`` (N, 3) in a pinhole camera whose
+    optical frame is at ``t`` with ``R`` (optical -> vehicle): in front where the point lies
+    more than ``min_depth_m`` along the optical axis (u, v there are meaningless elsewhere).
+    The one projection the snapshot, the console and the camera view share."""
+    p = np.asarray(pts, np.float64).reshape(-1, 3)
+    c = (p - np.asarray(t, np.float64).reshape(3)) @ R   # vehicle -> optical: R^T (p - t)
+    z = c[:, 2]
+    front = z > min_depth_m
+    zs = np.where(front, z, 1.0)
+    return fx * c[:, 0] / zs + cx, fy * c[:, 1] / zs + cy, front
+
+
 class CameraView:
     """One frame's masks of one camera (uint8, 255 = raised, all of one size), the pinhole
     ``K`` of that size, the camera's pose on the vehicle (``R`` optical -> vehicle, position
@@ -39,12 +53,8 @@ class CameraView:
         """(u, v, inside) of vehicle-frame points: pixel coordinates in the masks' size and
         whether the point is in front of the camera, within its range and in the image."""
         p = np.asarray(xyz, np.float64).reshape(-1, 3)
-        c = (p - self.t) @ self.R                   # vehicle -> optical: R^T (p - t)
-        z = c[:, 2]
-        front = z > 0.05
-        zs = np.where(front, z, 1.0)
-        u = self.K[0, 0] * c[:, 0] / zs + self.K[0, 2]
-        v = self.K[1, 1] * c[:, 1] / zs + self.K[1, 2]
+        K = self.K
+        u, v, front = pixels_of(p, K[0, 0], K[1, 1], K[0, 2], K[1, 2], self.R, self.t, 0.05)
         rng = np.hypot(p[:, 0] - self.t[0], p[:, 1] - self.t[1])
         inside = front & (rng <= self.max_range_m)
         if self.shape is None:
