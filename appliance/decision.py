@@ -163,6 +163,13 @@ def near_squares(xy: np.ndarray, other_xy: np.ndarray, side_m: float) -> np.ndar
     return out
 
 
+def camera_views(detections: dict) -> list:
+    """This cycle's camera detections that carry a view (``Detections.view``): what a laser
+    return can be confirmed by."""
+    return [o for n, o in detections.items()
+            if n != "laser" and o is not None and getattr(o, "view", None) is not None]
+
+
 def camera_confirms(cams: list, xyz: np.ndarray, names, radius_m: float
                     ) -> tuple[np.ndarray, np.ndarray]:
     """(inside, confirmed) per vehicle-frame point ``xyz`` (N, 3): in the view of one of the
@@ -259,8 +266,7 @@ class DecisionCore:
         d = detections.get("laser")
         if not names or d is None or d.points_z is None or not len(d.points_xy):
             return None
-        cams = [o for n, o in detections.items()
-                if n != "laser" and o is not None and getattr(o, "view", None) is not None]
+        cams = camera_views(detections)
         if not cams:
             return None
         xy = np.asarray(d.points_xy, np.float64).reshape(-1, 2)

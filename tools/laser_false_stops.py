@@ -90,7 +90,8 @@ def main(argv=None) -> int:
     spec = make_spec(a.kind, a.seed, a.minutes, 0.5, extra)
     d = Drive(a.kind, a.seed, a.minutes, config_data=spec["config"], stereo_scale=0.5)
     d.build()
-    from appliance.decision import camera_confirms
+    from appliance.decision import camera_confirms, camera_views
+    from appliance.perception.laser import plane_points
     confirm_by = d.cfg.grid.laser_confirm_by or ("novelty", "learned", "points")
     if a.picture:
         Path(a.picture).mkdir(parents=True, exist_ok=True)
@@ -121,10 +122,8 @@ def main(argv=None) -> int:
         top, mat = world.height(wx, wy)
         roll, pitch, _ = f.vehicle.attitude()
         # the camera's say on each of them, as [grid] laser_confirm_by would judge it
-        cams = [o for n, o in res.detections.items()
-                if n != "laser" and o is not None and getattr(o, "view", None) is not None]
-        plane = (loc @ g.mount.rotation().T)[:, 2] + g.mount.z_m
-        xyz = np.column_stack([vx, vy, plane])[near]
+        cams = camera_views(res.detections)
+        xyz = np.column_stack(plane_points(loc, g.mount))[near]   # where the pipeline puts them
         inside = conf = None
         if cams:
             inside, conf = camera_confirms(cams, xyz, confirm_by, d.cfg.grid.laser_confirm_radius_m)

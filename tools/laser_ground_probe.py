@@ -88,16 +88,13 @@ def confirmed(res, loc: np.ndarray, mount, names, radius_m: float) -> np.ndarray
     this cycle confirms it as ``[grid] laser_confirm_by = names`` would (appliance/decision.py),
     0.0 where a camera had it in view and did not, nan where no camera had it in view (or
     ``names`` is empty)."""
-    from appliance.decision import camera_confirms
+    from appliance.decision import camera_confirms, camera_views
+    from appliance.perception.laser import plane_points
     out = np.full(len(loc), np.nan)
-    cams = [o for n, o in res.detections.items()
-            if n != "laser" and o is not None and getattr(o, "view", None) is not None]
+    cams = camera_views(res.detections)
     if not names or not cams or not len(loc):
         return out
-    c, s = np.cos(np.radians(mount.yaw_deg)), np.sin(np.radians(mount.yaw_deg))
-    xy = np.stack([mount.x_m + c * loc[:, 0] - s * loc[:, 1],
-                   mount.y_m + s * loc[:, 0] + c * loc[:, 1]], 1)
-    z = (loc @ mount.rotation().T)[:, 2] + mount.z_m      # where the pipeline puts the plane
+    xy, z = plane_points(loc, mount)                      # where the pipeline puts them
     inside, ok = camera_confirms(cams, np.column_stack([xy, z]), names, radius_m)
     out[inside] = ok[inside].astype(float)
     return out

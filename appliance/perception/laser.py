@@ -68,6 +68,17 @@ def segment_widths(r: np.ndarray, ok: np.ndarray, step_rad: float, jump_m: float
     return out
 
 
+def plane_points(local: np.ndarray, mount) -> tuple[np.ndarray, np.ndarray]:
+    """The paper's assumption for scanner-frame returns ``local`` (N, 3; z = 0): (their x, y in
+    the vehicle frame with the mount's position and yaw only, the scan plane parallel to the
+    ground; where the plane is in the vehicle frame, the height the mount's pitch and roll give
+    it at each return -- what a camera's ground or view is measured against)."""
+    c, s = np.cos(np.radians(mount.yaw_deg)), np.sin(np.radians(mount.yaw_deg))
+    xy = np.stack([mount.x_m + c * local[:, 0] - s * local[:, 1],
+                   mount.y_m + s * local[:, 0] + c * local[:, 1]], axis=1)
+    return xy, (local @ mount.rotation().T)[:, 2] + mount.z_m
+
+
 class LaserPipeline(Pipeline):
     name = "laser"
     requires = ("laser",)
@@ -98,14 +109,11 @@ class LaserPipeline(Pipeline):
             z = pts[:, 2]
             plane_z = None                  # a gravity frame, not the vehicle's
         else:
-            # the paper's assumption: the scan plane is parallel to the ground (mount yaw only)
-            c, s = np.cos(np.radians(m.yaw_deg)), np.sin(np.radians(m.yaw_deg))
-            pts = np.stack([m.x_m + c * local[:, 0] - s * local[:, 1],
-                            m.y_m + s * local[:, 0] + c * local[:, 1]], axis=1)
+            # the paper's assumption: the scan plane is parallel to the ground (mount yaw only);
+            # where the plane is in the vehicle frame (a mount tilted in pitch or roll: not at
+            # the mount's height everywhere), for a camera's ground or view to be measured against
+            pts, plane_z = plane_points(local, m)
             z = np.full(len(pts), m.z_m)
-            # where the plane is in the vehicle frame (a mount tilted in pitch or roll: not
-            # at the mount's height everywhere), for a camera's ground to be measured against
-            plane_z = (local @ m.rotation().T)[:, 2] + m.z_m
         # a planar scan sees one height (the hit's, or the mount's): no contact claim beyond it
         cands = cluster_candidates(pts[:, :2], z, None, base_sources=("laser",),
                                    pipeline=self.name, min_points=2, contact_m=np.inf)
