@@ -41,7 +41,7 @@ from collections import deque
 
 import numpy as np
 
-from appliance.zones import to_path_frame
+from appliance.zones import PathBend, same_bend, to_path_frame
 
 # default pipelines per scene kind: today's pipelines for the kind's sensors
 DEFAULT_PIPELINES = {"stubble-coverage": ("stereo-novelty",),
@@ -333,14 +333,16 @@ class Drive:
         near = np.abs(self._path_s - s) <= 3.0
         return bool(np.any(self._path_turn[near]))
 
-    def truth(self, stop_len_m: float, curvature_1pm: float = 0.0) -> list[dict]:
+    def truth(self, stop_len_m: float, curvature_1pm=0.0) -> list[dict]:
         """Real obstacles near the vehicle (the simulator's world, hit ones included): per
         obstacle its index, id, class, ``ahead`` (nearest corridor point from the front, inf
         when none), ``d_zone`` (distance of its footprint to the stop zone rectangle), ``pts``
         (footprint in the level vehicle frame), ``in_stop`` (with the tolerances), ``deep``
         (the tolerances inside the stop zone). With a ``curvature_1pm`` (the box's zones
         bent along a turn, ``[zones] follow_turn``) all of it is judged in the path's frame
-        (appliance/zones.to_path_frame): the corridor is the arc the vehicle drives."""
+        (appliance/zones.to_path_frame): the corridor is the arc the vehicle drives; with a
+        zones.PathBend (``follow_path``) the planned path's corridor, and a walker's meeting
+        is judged straight ahead, as the movers' decision judges it."""
         z = self.zones
         rear = self.scene.footprint[0]
         x, y, _ = self.vehicle.pose()
@@ -352,6 +354,7 @@ class Drive:
             p = self.vehicle.footprint_in_vehicle(k)
             if not len(p):
                 continue
+            p_vehicle = p
             if curvature_1pm:
                 p = to_path_frame(p, curvature_1pm, fx)
             ay = np.abs(p[:, 1])
@@ -363,7 +366,9 @@ class Drive:
                 (p[:, 0] <= fx + stop_len_m - self.zone_tol_m)
             out.append({"k": k, "id": o.id, "cls": o.cls, "ahead": ahead, "pts": p,
                         "d_zone": float(np.hypot(dx, dy).min()),
-                        **self._meets(o, p, rear, curvature_1pm),
+                        **(self._meets(o, p_vehicle, rear, 0.0)
+                           if isinstance(curvature_1pm, PathBend)
+                           else self._meets(o, p, rear, curvature_1pm)),
                         "in_stop": ahead <= stop_len_m + self.zone_tol_m,
                         "in_slow": stop_len_m + self.zone_tol_m < ahead
                         <= stop_len_m + z.slow_extra_m + self.zone_tol_m,
@@ -404,7 +409,7 @@ class Drive:
         d2 = ((c[:, None, :] - pts[None, :, :]) ** 2).sum(-1)
         return bool(d2.min() <= self.hold_m ** 2)
 
-    def _pipelines_in_stop(self, res, stop_len: float, curvature_1pm: float = 0.0,
+    def _pipelines_in_stop(self, res, stop_len: float, curvature_1pm=0.0,
                            detections: dict | None = None) -> list[str]:
         """The pipelines with a point in the stop zone this cycle (``detections``, or the
         drive's own in ``res``)."""
@@ -433,8 +438,8 @@ class Drive:
             self.shadow.wait_idle()
         verdict = None if pic is None else pic.verdict
         s_len = verdict.stop_len_m if verdict is not None else self.zones.min_stop_m
-        s_kappa = float(getattr(verdict, "curvature_1pm", 0.0) or 0.0)
-        if abs(s_len - stop_len) > 1e-9 or abs(s_kappa - kappa) > 1e-12:
+        s_kappa = 0.0 if verdict is None else verdict.bend
+        if abs(s_len - stop_len) > 1e-9 or not same_bend(s_kappa, kappa):
             truth = self.truth(s_len, s_kappa)
         state = out.state
         is_stop = state is GateState.STOP
@@ -499,7 +504,7 @@ class Drive:
         state = out.state
         t_s = res.index / self.rate
         stop_len = res.verdict.stop_len_m if res.verdict is not None else self.zones.min_stop_m
-        kappa = float(getattr(res.verdict, "curvature_1pm", 0.0) or 0.0)
+        kappa = 0.0 if res.verdict is None else res.verdict.bend
         truth = self.truth(stop_len, kappa)
         cells = np.asarray(res.cells_xy, np.float64).reshape(-1, 2)
         x, y, yaw = v.pose()

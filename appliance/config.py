@@ -66,6 +66,14 @@ class ZonesConfig:
     max_curvature_1pm: float = _f(2.0, lo=0.0, hi=10.0,
                                   doc="follow_turn: curvatures beyond this (a radius under "
                                       "1/this) are taken as this")
+    follow_path: bool = _f(False, doc="lay the stop and slow zones along the path the vehicle "
+                                      "will drive, when its autopilot sends one (the "
+                                      "simulator: its route); without a usable path this "
+                                      "cycle, the zones are straight (or follow_turn's)")
+    path_max_offset_m: float = _f(0.5, lo=0.0, hi=5.0,
+                                  doc="follow_path: a path whose first point is further than "
+                                      "this from the vehicle's origin (the vehicle is not on "
+                                      "it) is not used")
 
 
 @dataclass(frozen=True)

@@ -26,8 +26,9 @@ from appliance.fusion import GridFusion, confirmed_points
 from appliance.gate import SafetyGate
 from appliance.perception.base import Detections
 from appliance.tracking import Tracker, TrackView
-from appliance.zones import (STRAIGHT_1PM, ZoneVerdict, assess, drop_excluded,
-                             footprints_meet, sectors, stop_length, to_path_frame, zone_rects)
+from appliance.zones import (STRAIGHT_1PM, PathBend, ZoneVerdict, assess, bend_fields,
+                             drop_excluded, footprints_meet, sectors, stop_length,
+                             to_path_frame, zone_rects)
 from hal.types import GateOutput, VehicleState
 
 
@@ -48,7 +49,7 @@ class Picture:
 
 def assess_tracks(tracks: list[TrackView], cells_xy: np.ndarray, speed_mps: float, cfg: Config,
                   cells_by_id: dict[int, np.ndarray] | None = None,
-                  curvature_1pm: float = 0.0) -> ZoneVerdict:
+                  curvature_1pm: "float | PathBend" = 0.0) -> ZoneVerdict:
     """The zone verdict on confirmed tracks (see the module doc). ``cells_by_id``: each
     track's cells; a track with cells is in a zone when any part of one of its cells is (a
     front end's candidate can be far larger than what stands in it), else when any part of
@@ -137,7 +138,7 @@ def assess_tracks(tracks: list[TrackView], cells_xy: np.ndarray, speed_mps: floa
     return ZoneVerdict(stop_len, slow_len, len(stop), len(slow), nearest, sectors(cells),
                        stop_reason=stop_reason, slow_reason=slow_reason,
                        track_ids=tuple(t.id for _, t in stop + slow),
-                       curvature_1pm=float(curvature_1pm))
+                       **bend_fields(curvature_1pm))
 
 
 def decision_name(tc) -> str:
@@ -203,6 +204,7 @@ class DecisionCore:
         self.last: Picture | None = None
         self.curvature_1pm = 0.0          # the arc the zones bend along ([zones] follow_turn)
         self.laser_unconfirmed = 0        # laser returns no camera confirmed this cycle
+        self.path_refused = ""            # why this cycle's planned path was not used
 
     # below this speed the yaw rate says nothing of the path: the last curvature is kept (a
     # vehicle stopped in a turn drives on along it: its steering has not moved)
@@ -220,6 +222,30 @@ class DecisionCore:
             if abs(self.curvature_1pm) < STRAIGHT_1PM:
                 self.curvature_1pm = 0.0
         return self.curvature_1pm
+
+    def _bend(self, vehicle: VehicleState | None) -> float | PathBend:
+        """What the zones are laid along this cycle: the planned path (``[zones]
+        follow_path``, when the vehicle state carries a usable one), else the arc of
+        ``follow_turn``, else straight (0)."""
+        z = self.cfg.zones
+        self.path_refused = ""
+        if z.follow_path:
+            path = None if vehicle is None else vehicle.path_xy
+            if path is None:
+                self.path_refused = "no planned path"
+            else:
+                try:
+                    p = np.asarray(path, dtype=np.float64).reshape(-1, 2)
+                    if not len(p) or not np.all(np.isfinite(p[0])):
+                        raise ValueError("its first point is not a number")
+                    if math.hypot(p[0, 0], p[0, 1]) > z.path_max_offset_m:
+                        raise ValueError(f"it starts {math.hypot(p[0, 0], p[0, 1]):.2f} m from "
+                                         f"the vehicle")
+                    return PathBend(p, z.front_x_m,
+                                    near_m=z.half_width_m + 2 * self.cfg.grid.cell_m)
+                except (ValueError, TypeError) as exc:
+                    self.path_refused = f"planned path not used: {exc}"
+        return self._curvature(vehicle)
 
     def laser_on_ground(self, detections: dict[str, Detections]) -> dict[str, Detections]:
         """``[perception.laser] ground_min_m``: the laser's returns where its scan plane runs
@@ -288,7 +314,7 @@ class DecisionCore:
         grid_cells = self.grid.update(pts_xy, vehicle, now_ns,
                                       confirmed_points(detections, g, self.cfg.zones.front_x_m))
         speed = vehicle.speed_mps if vehicle is not None else 0.0
-        kappa = self._curvature(vehicle)
+        kappa = self._bend(vehicle)
         if self.tracker is None:
             conf = None
             if g.stop_at > g.occupied_at:    # a STOP needs a cell seen in more cycles running

@@ -297,12 +297,13 @@ def default_pipelines(info: RunInfo, cfg=None, configured: bool = False) -> list
     return names
 
 
-def _rect_intersects(ob: dict, rect: dict, curvature_1pm: float = 0.0,
+def _rect_intersects(ob: dict, rect: dict, curvature_1pm=0.0,
                      front_x_m: float = 0.0) -> bool:
     """Does the obstacle's footprint (length x width turned by yaw_deg) meet the zone rectangle
     {x_min_m, x_max_m, half_width_m}? (The box's own zone test, appliance/zones.py.) With a
     ``curvature_1pm`` the zone is bent along that arc from ``front_x_m`` (``[zones]
-    follow_turn``): the footprint is taken into the path's frame."""
+    follow_turn``), or a zones.PathBend (``follow_path``): the footprint is taken into the
+    path's frame."""
     from appliance.zones import footprint_meets, heading_to_path_frame, to_path_frame
     xy = np.array([[float(ob["x_m"]), float(ob["y_m"])]])
     yaw = math.radians(float(ob.get("yaw_deg", 0.0)))
@@ -335,6 +336,9 @@ def decision_record(index: int, stamp_ns: int, out, picture, rects, cause: str) 
     kappa = float(getattr(picture.verdict, "curvature_1pm", 0.0) or 0.0)
     if kappa:   # beyond the contract: the zones were bent along this arc ([zones] follow_turn)
         rec["path_curvature_1pm"] = round(kappa, 5)
+    path = getattr(picture.verdict, "path", None)
+    if path is not None:   # beyond the contract: the zones were laid along this planned path
+        rec["path_xy"] = [[round(float(x), 3), round(float(y), 3)] for x, y in path.path_xy]
     return rec
 
 
@@ -351,7 +355,7 @@ class _StopTally:
         self.path_frames = self.path_detected = 0
 
     def add(self, index: int, stamp_ns: int, state: str, cause: str, truth, stop_rect,
-            slow_rect=None, cells=None, curvature_1pm: float = 0.0) -> None:
+            slow_rect=None, cells=None, curvature_1pm=0.0) -> None:
         if truth is None:
             return
         bend = (curvature_1pm, stop_rect["x_min_m"])    # the zones as the box bent them
@@ -511,7 +515,7 @@ def evaluate_run(path: str | os.PathLike, pipeline: str | None = None, config=No
             rects = zone_rects(vehicle.speed_mps if vehicle is not None else 0.0, cfg.zones)
             stops.add(fr.index, fr.stamp_ns, gate_out.state.value, core.gate.cause, truth,
                       rects[0], rects[1], np.asarray(cells, dtype=np.float64).reshape(-1, 2),
-                      picture.verdict.curvature_1pm)
+                      picture.verdict.bend)
             if sink is not None:
                 sink.write(json.dumps(decision_record(fr.index, fr.stamp_ns, gate_out, picture,
                                                       rects, core.gate.cause),

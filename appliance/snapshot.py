@@ -19,12 +19,14 @@ STATE_BGR = {GateState.STOP: (40, 40, 220), GateState.SLOW: (0, 190, 230),
 PANEL_H = 420
 
 
-def curvature_of(res) -> float:
-    """The arc the box bent its zones along this cycle (0: straight; [zones] follow_turn)."""
-    return float(getattr(getattr(res, "verdict", None), "curvature_1pm", 0.0) or 0.0)
+def curvature_of(res):
+    """What the box laid its zones along this cycle: an arc (0: straight; [zones]
+    follow_turn) or the planned path (a zones.PathBend; [zones] follow_path)."""
+    v = getattr(res, "verdict", None)
+    return 0.0 if v is None else v.bend
 
 
-def draw_zones(img, px, z, stop_len_m: float, curvature_1pm: float = 0.0) -> None:
+def draw_zones(img, px, z, stop_len_m: float, curvature_1pm=0.0) -> None:
     """The slow and stop zones on a top view (``px(x, y)`` -> pixel), bent along the turn
     when the box bent them."""
     f, hw = z.front_x_m, z.half_width_m

@@ -29,6 +29,12 @@ class ZoneVerdict:
     slow_reason: str | None = None
     track_ids: tuple[int, ...] = ()   # the tracks in (or predicted into) the stop/slow zones
     curvature_1pm: float = 0.0   # the zones bend along this arc ([zones] follow_turn; 0: straight)
+    path: "PathBend | None" = None   # ... or along the planned path ([zones] follow_path)
+
+    @property
+    def bend(self) -> "float | PathBend":
+        """What the zones were laid along: the planned path, else the arc (0: straight)."""
+        return self.path if self.path is not None else self.curvature_1pm
 
 
 def zone_rects(speed_mps: float, z: ZonesConfig) -> tuple[dict, dict]:
@@ -106,7 +112,113 @@ def _arc(curvature_1pm: float, front_x_m: float) -> tuple[float, float, float] |
     return (1.0 if k > 0 else -1.0), r0, math.hypot(front_x_m, r0)
 
 
-def to_path_frame(xy, curvature_1pm: float, front_x_m: float) -> np.ndarray:
+class PathBend:
+    """The zones laid along the path the vehicle will drive (``[zones] follow_path``).
+
+    ``path_xy`` is the planned path of the vehicle's origin (the point that drives it: the
+    rear axle's middle), a polyline in the vehicle frame starting at or near the origin, as an
+    autopilot plans it (the simulator: its route). The vehicle's heading along it is the
+    path's direction, so its front drives the curve ``front`` = each path point + ``front_x_m``
+    along that direction; the zones' frame is that curve's: ``x`` = ``front_x_m`` + the
+    distance along it from where the front is now, ``y`` = the offset from it (left positive).
+    The curve is carried on straight for ``behind_m`` behind the front (what is beside the
+    body is behind it, in no zone) and beyond the path's end (a path shorter than the zones
+    leaves them straight from there).
+
+    A point near the curve in two places (the legs of a U-turn: it lies square beside both
+    within ``near_m``, the zones' half width and a cell's reach) is taken at the nearer of the
+    two along the path, and at its smallest offset from the curve anywhere: the conservative
+    reading (a zone test never misses it for having chosen the far leg)."""
+
+    def __init__(self, path_xy, front_x_m: float, near_m: float = 2.0, behind_m: float = 5.0,
+                 beyond_m: float = 50.0):
+        p = np.asarray(path_xy, dtype=np.float64).reshape(-1, 2)
+        p = p[np.all(np.isfinite(p), axis=1)]
+        if len(p) >= 2:
+            keep = np.concatenate([[True], np.hypot(*np.diff(p, axis=0).T) > 1e-6])
+            p = p[keep]
+        if len(p) < 2:
+            raise ValueError("a planned path needs two distinct points")
+        d = np.diff(p, axis=0)
+        seg_yaw = np.arctan2(d[:, 1], d[:, 0])
+        yaw = np.concatenate([seg_yaw, seg_yaw[-1:]])        # a point's heading: its segment's
+        self.front_x_m = float(front_x_m)
+        self.near_m = float(near_m)
+        front = p + self.front_x_m * np.stack([np.cos(yaw), np.sin(yaw)], axis=1)
+        t0 = np.array([math.cos(yaw[0]), math.sin(yaw[0])])
+        t1 = np.array([math.cos(yaw[-1]), math.sin(yaw[-1])])
+        pts = np.concatenate([front[:1] - behind_m * t0, front, front[-1:] + beyond_m * t1])
+        self.a, self.d = pts[:-1], np.diff(pts, axis=0)
+        self.len = np.hypot(self.d[:, 0], self.d[:, 1])
+        keep = self.len > 1e-9
+        self.a, self.d, self.len = self.a[keep], self.d[keep], self.len[keep]
+        self.s0 = np.concatenate([[0.0], np.cumsum(self.len)[:-1]]) - behind_m
+        self.yaw = np.arctan2(self.d[:, 1], self.d[:, 0])
+        self.path_xy = p                 # station 0: the front of the path's first point
+
+    def _project(self, xy: np.ndarray):
+        """(station, signed offset, heading of the segment) per point: see the class doc."""
+        q = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        if not len(q):
+            z = np.zeros(0)
+            return z, z, z
+        rel = q[:, None, :] - self.a[None]                               # (N, S, 2)
+        l2 = self.len ** 2
+        raw = (rel * self.d[None]).sum(-1) / l2[None]
+        t = np.clip(raw, 0.0, 1.0)
+        foot = rel - t[..., None] * self.d[None]
+        dist = np.hypot(foot[..., 0], foot[..., 1])
+        side = np.sign(self.d[None, :, 0] * rel[..., 1] - self.d[None, :, 1] * rel[..., 0])
+        nearest = np.argmin(dist, axis=1)
+        rows = np.arange(len(q))
+        dmin = dist[rows, nearest]
+        station = self.s0[None] + t * self.len[None]
+        # another leg: a segment the point lies square beside, near enough
+        near = ((raw >= 0.0) & (raw <= 1.0) & (dist <= self.near_m))
+        near[rows, nearest] = True
+        pick = np.argmin(np.where(near, station, np.inf), axis=1)
+        sgn = side[rows, nearest]
+        sgn[sgn == 0] = 1.0
+        return station[rows, pick], sgn * dmin, self.yaw[pick]
+
+    def to_frame(self, xy) -> np.ndarray:
+        s, off, _ = self._project(xy)
+        return np.stack([self.front_x_m + s, off], axis=1) if len(s) else \
+            np.zeros((0, 2))
+
+    def from_frame(self, xy) -> np.ndarray:
+        q = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        s = q[:, 0] - self.front_x_m
+        i = np.clip(np.searchsorted(self.s0, s, side="right") - 1, 0, len(self.s0) - 1)
+        t = (s - self.s0[i]) / self.len[i]
+        base = self.a[i] + t[:, None] * self.d[i]
+        nrm = np.stack([-np.sin(self.yaw[i]), np.cos(self.yaw[i])], axis=1)
+        return base + q[:, 1:2] * nrm
+
+    def heading(self, xy, yaw_rad) -> np.ndarray:
+        _, _, seg_yaw = self._project(xy)
+        return np.asarray(yaw_rad, dtype=np.float64) - seg_yaw
+
+    def end_m(self) -> float:
+        """The zones end where the curve does (its straight run beyond the path included)."""
+        return self.front_x_m + float(self.s0[-1] + self.len[-1])
+
+
+def bend_fields(bend: "float | PathBend") -> dict:
+    """A :class:`ZoneVerdict`'s ``curvature_1pm`` and ``path`` for zones laid along ``bend``."""
+    if isinstance(bend, PathBend):
+        return {"curvature_1pm": 0.0, "path": bend}
+    return {"curvature_1pm": float(bend), "path": None}
+
+
+def same_bend(a, b) -> bool:
+    """Were two sets of zones laid along the same line?"""
+    if isinstance(a, PathBend) or isinstance(b, PathBend):
+        return a is b
+    return abs(float(a) - float(b)) <= 1e-12
+
+
+def to_path_frame(xy, curvature_1pm: "float | PathBend", front_x_m: float) -> np.ndarray:
     """Vehicle-frame points (N, 2) in the frame of the path the vehicle's front drives at a
     constant ``curvature_1pm`` (1/m, positive turning left: the vehicle frame's y is to the
     left, its origin the point that drives the path, as the sim's and a tractor's rear axle):
@@ -115,7 +227,10 @@ def to_path_frame(xy, curvature_1pm: float, front_x_m: float) -> np.ndarray:
     stop and slow zones bent along the turn (``[zones] follow_turn``); for a straight path it
     is the identity. The arc is followed for half a turn (a U-turn, the most a vehicle turns
     in one go): a point behind the front on its circle, or more than half a turn ahead of it,
-    has ``x`` < ``front_x_m`` and is in no zone."""
+    has ``x`` < ``front_x_m`` and is in no zone. A :class:`PathBend` instead of a curvature:
+    the frame of the planned path (``[zones] follow_path``)."""
+    if isinstance(curvature_1pm, PathBend):
+        return curvature_1pm.to_frame(xy)
     p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     arc = _arc(curvature_1pm, front_x_m)
     if arc is None or not len(p):
@@ -132,8 +247,10 @@ def to_path_frame(xy, curvature_1pm: float, front_x_m: float) -> np.ndarray:
     return out
 
 
-def from_path_frame(xy, curvature_1pm: float, front_x_m: float) -> np.ndarray:
+def from_path_frame(xy, curvature_1pm: "float | PathBend", front_x_m: float) -> np.ndarray:
     """The inverse of :func:`to_path_frame`: path-frame points back in the vehicle frame."""
+    if isinstance(curvature_1pm, PathBend):
+        return curvature_1pm.from_frame(xy)
     q = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     arc = _arc(curvature_1pm, front_x_m)
     if arc is None or not len(q):
@@ -144,11 +261,12 @@ def from_path_frame(xy, curvature_1pm: float, front_x_m: float) -> np.ndarray:
     return np.stack([rho * np.sin(a), sgn * (r0 - rho * np.cos(a))], axis=1)
 
 
-def zone_outline(x_min_m: float, x_max_m: float, half_width_m: float, curvature_1pm: float,
+def zone_outline(x_min_m: float, x_max_m: float, half_width_m: float,
+                 curvature_1pm: "float | PathBend",
                  front_x_m: float, step_m: float = 0.1) -> np.ndarray:
     """A zone rectangle (path frame) as a closed outline in the vehicle frame, bent along the
     turn when there is one (for drawing: the snapshot, the console)."""
-    arc = _arc(curvature_1pm, front_x_m)
+    arc = None if isinstance(curvature_1pm, PathBend) else _arc(curvature_1pm, front_x_m)
     if arc is not None:                        # the zones end after half a turn
         x_max_m = max(x_min_m, min(x_max_m, front_x_m + math.pi * arc[2]))
     n = max(2, int(math.ceil((x_max_m - x_min_m) / step_m)) + 1)
@@ -158,9 +276,11 @@ def zone_outline(x_min_m: float, x_max_m: float, half_width_m: float, curvature_
     return from_path_frame(np.concatenate([left, right]), curvature_1pm, front_x_m)
 
 
-def heading_to_path_frame(xy, yaw_rad, curvature_1pm: float) -> np.ndarray:
+def heading_to_path_frame(xy, yaw_rad, curvature_1pm: "float | PathBend") -> np.ndarray:
     """Headings (rad, vehicle frame) of things at vehicle-frame points ``xy``, in the frame of
     :func:`to_path_frame`: less the turn of the path's tangent there."""
+    if isinstance(curvature_1pm, PathBend):
+        return curvature_1pm.heading(xy, yaw_rad)
     p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     yaw = np.broadcast_to(np.asarray(yaw_rad, dtype=np.float64), (len(p),))
     arc = _arc(curvature_1pm, 0.0)
@@ -210,7 +330,7 @@ def sectors(cells_xy: np.ndarray, n: int = 72, fov_deg: float = 180.0,
 
 def assess(cells_xy: np.ndarray, speed_mps: float, z: ZonesConfig,
            confirmed: np.ndarray | None = None, cell_m: float = 0.0,
-           curvature_1pm: float = 0.0) -> ZoneVerdict:
+           curvature_1pm: "float | PathBend" = 0.0) -> ZoneVerdict:
     """The zone verdict on occupied cells. ``confirmed`` (one flag per cell, or None: all):
     only a confirmed cell in the stop zone makes a STOP; an unconfirmed one there is a SLOW
     (``[grid] stop_at``: a cell seen in too few cycles running to stop for). ``cell_m``: the
@@ -219,7 +339,8 @@ def assess(cells_xy: np.ndarray, speed_mps: float, z: ZonesConfig,
     hit it is inside), so what the grid holds 4 cm beyond the stop zone's end is a STOP, not a
     SLOW one cycle too long. ``nearest_m``: the nearest such cell's centre from the front (0
     when its centre is behind the front). ``curvature_1pm``: the zones bend along that arc
-    (:func:`to_path_frame`; distances are then along the arc)."""
+    (:func:`to_path_frame`; distances are then along the arc), or a :class:`PathBend`: along
+    the planned path."""
     cells = np.asarray(cells_xy, dtype=np.float64).reshape(-1, 2)
     if confirmed is not None:
         keep = kept_mask(cells, z)
@@ -245,4 +366,4 @@ def assess(cells_xy: np.ndarray, speed_mps: float, z: ZonesConfig,
         slow_reason = (f"unconfirmed obstacle {near:.1f} m ahead in the stop zone "
                        f"({stop_len:.1f} m): slow until it is seen again")
     return ZoneVerdict(stop_len, slow_len, in_stop, in_slow, nearest, sectors(cells),
-                       slow_reason=slow_reason, curvature_1pm=float(curvature_1pm))
+                       slow_reason=slow_reason, **bend_fields(curvature_1pm))

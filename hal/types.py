@@ -138,6 +138,10 @@ class VehicleState(_Stamped):
     roll_rad: float = 0.0
     pitch_rad: float = 0.0
     yaw_rad: float = 0.0
+    # the path the vehicle's origin will drive, as its autopilot planned it: (N, 2) points in
+    # the vehicle frame at this stamp, from the origin on (None: not known). [zones]
+    # follow_path lays the zones along it (docs/zones.md)
+    path_xy: np.ndarray | None = field(default=None, compare=False, repr=False)
 
 
 class GateState(enum.Enum):

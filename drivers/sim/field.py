@@ -187,7 +187,8 @@ class SimField:
         roll, pitch, _ = self.vehicle.attitude()
         _, _, yaw = self.vehicle.pose()
         return VehicleState(int(stamp_ns), int(seq), float(self.vehicle.speed),
-                            float(self.vehicle.yaw_rate), float(roll), float(pitch), float(yaw))
+                            float(self.vehicle.yaw_rate), float(roll), float(pitch), float(yaw),
+                            path_xy=self.vehicle.planned_path())
 
     def render(self, stamp_ns: int, seq: int) -> SimSample:
         """Every sensor of the field at the current pose."""

@@ -94,6 +94,21 @@ class Vehicle:
         yaw += self.heading_off
         return x, y, math.atan2(math.sin(yaw), math.cos(yaw))
 
+    def planned_path(self, reach_m: float = 15.0, step_m: float = 0.25) -> np.ndarray:
+        """The route ahead as an autopilot would send it (``[zones] follow_path``): the path
+        the origin follows from here for ``reach_m`` (to the route's end), every ``step_m``,
+        in the vehicle frame (x ahead, y left). Off the route (a detour) it starts where the
+        route is, beside the vehicle."""
+        p = self.scene.path
+        s0 = min(max(self.s, 0.0), self.path_length_m)
+        s = np.append(np.arange(s0, min(s0 + reach_m, self.path_length_m), step_m),
+                      min(s0 + reach_m, self.path_length_m))
+        wx, wy = np.interp(s, self._s, p[:, 0]), np.interp(s, self._s, p[:, 1])
+        x, y, yaw = self.pose()
+        c, sn = math.cos(yaw), math.sin(yaw)
+        dx, dy = wx - x, wy - y
+        return np.stack([dx * c + dy * sn, -dx * sn + dy * c], axis=1)
+
     def _curvature(self) -> float:
         ds = 0.5
         a = float(np.interp(min(self.s + ds, self.path_length_m), self._s, self._yaw))
