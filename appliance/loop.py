@@ -348,6 +348,11 @@ class ApplianceLoop:
                 # did not confirm (a SLOW, not a STOP); None when off
                 "laser_unconfirmed": (self.core.laser_unconfirmed
                                       if self.cfg.grid.laser_confirm_by else None),
+                # [zones] follow_path: "path" when the zones lie along the planned path this
+                # cycle, else why not (the zones are then straight); None when off
+                "zones_along": ((("path" if v is not None and v.path is not None else
+                                  self.core.path_refused or "straight"))
+                                if self.cfg.zones.follow_path else None),
             }
             # the confirmed tracks (the obstacles the box holds), nearest first
             out["tracks"] = [t.to_dict() for t in sorted(
