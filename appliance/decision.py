@@ -241,8 +241,10 @@ class DecisionCore:
                     if math.hypot(p[0, 0], p[0, 1]) > z.path_max_offset_m:
                         raise ValueError(f"it starts {math.hypot(p[0, 0], p[0, 1]):.2f} m from "
                                          f"the vehicle")
-                    return PathBend(p, z.front_x_m,
-                                    near_m=z.half_width_m + 2 * self.cfg.grid.cell_m)
+                    # as far as the slow zone reaches, and a cell beyond
+                    speed = vehicle.speed_mps if math.isfinite(vehicle.speed_mps) else 0.0
+                    reach = stop_length(speed, z) + z.slow_extra_m + 2 * self.cfg.grid.cell_m
+                    return PathBend(p, z.front_x_m, z.half_width_m, reach_m=reach)
                 except (ValueError, TypeError) as exc:
                     self.path_refused = f"planned path not used: {exc}"
         return self._curvature(vehicle)

@@ -116,22 +116,26 @@ class PathBend:
     """The zones laid along the path the vehicle will drive (``[zones] follow_path``).
 
     ``path_xy`` is the planned path of the vehicle's origin (the point that drives it: the
-    rear axle's middle), a polyline in the vehicle frame starting at or near the origin, as an
-    autopilot plans it (the simulator: its route). The vehicle's heading along it is the
-    path's direction, so its front drives the curve ``front`` = each path point + ``front_x_m``
-    along that direction; the zones' frame is that curve's: ``x`` = ``front_x_m`` + the
-    distance along it from where the front is now, ``y`` = the offset from it (left positive).
-    The curve is carried on straight for ``behind_m`` behind the front (what is beside the
-    body is behind it, in no zone) and beyond the path's end (a path shorter than the zones
-    leaves them straight from there).
+    rear axle's middle), a polyline in the vehicle frame from at or near the origin, as an
+    autopilot plans it (the simulator: its route); the vehicle's heading along it is the
+    path's direction. The zones are what the vehicle's body sweeps as it drives on along it:
+    the body is the rectangle from the origin to the front (``front_x_m``), ``half_width_m``
+    (the zones' half width, margin included) to each side. A point is ``s`` metres into the
+    zones when the body, driven ``s`` metres on along the path, first covers it; so in this
+    frame ``x`` = ``front_x_m`` + that ``s`` and ``y`` its offset across the body then, and the
+    zones are the straight rectangles again (stop: ``x`` up to the front + the stopping
+    distance). A point the body never covers within ``reach_m`` is placed at its nearest
+    approach (``x`` there, ``y`` = the half width + its distance from the body), outside every
+    zone; one the body covers now (beside or under it) keeps its own coordinates (behind the
+    front: in no zone, as with straight zones). On a straight path this is the straight zones
+    exactly; in a turn the inner side of the body sweeps what lies beside it, and what lies
+    straight ahead of the front but outside the turn is never reached.
 
-    A point near the curve in two places (the legs of a U-turn: it lies square beside both
-    within ``near_m``, the zones' half width and a cell's reach) is taken at the nearer of the
-    two along the path, and at its smallest offset from the curve anywhere: the conservative
-    reading (a zone test never misses it for having chosen the far leg)."""
+    A path shorter than ``reach_m`` is carried on straight from its end. ``step_m``: the body
+    is placed every this along the path (a distance in the zones is good to it)."""
 
-    def __init__(self, path_xy, front_x_m: float, near_m: float = 2.0, behind_m: float = 5.0,
-                 beyond_m: float = 50.0):
+    def __init__(self, path_xy, front_x_m: float, half_width_m: float, reach_m: float = 15.0,
+                 step_m: float = 0.05):
         p = np.asarray(path_xy, dtype=np.float64).reshape(-1, 2)
         p = p[np.all(np.isfinite(p), axis=1)]
         if len(p) >= 2:
@@ -139,69 +143,98 @@ class PathBend:
             p = p[keep]
         if len(p) < 2:
             raise ValueError("a planned path needs two distinct points")
+        self.path_xy = p
+        self.front_x_m, self.half_width_m = float(front_x_m), float(half_width_m)
         d = np.diff(p, axis=0)
-        seg_yaw = np.arctan2(d[:, 1], d[:, 0])
-        yaw = np.concatenate([seg_yaw, seg_yaw[-1:]])        # a point's heading: its segment's
-        self.front_x_m = float(front_x_m)
-        self.near_m = float(near_m)
-        front = p + self.front_x_m * np.stack([np.cos(yaw), np.sin(yaw)], axis=1)
-        t0 = np.array([math.cos(yaw[0]), math.sin(yaw[0])])
-        t1 = np.array([math.cos(yaw[-1]), math.sin(yaw[-1])])
-        pts = np.concatenate([front[:1] - behind_m * t0, front, front[-1:] + beyond_m * t1])
-        self.a, self.d = pts[:-1], np.diff(pts, axis=0)
-        self.len = np.hypot(self.d[:, 0], self.d[:, 1])
-        keep = self.len > 1e-9
-        self.a, self.d, self.len = self.a[keep], self.d[keep], self.len[keep]
-        self.s0 = np.concatenate([[0.0], np.cumsum(self.len)[:-1]]) - behind_m
-        self.yaw = np.arctan2(self.d[:, 1], self.d[:, 0])
-        self.path_xy = p                 # station 0: the front of the path's first point
+        seg = np.hypot(d[:, 0], d[:, 1])
+        cum = np.concatenate([[0.0], np.cumsum(seg)])
+        yaw = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
+        self.reach_m = max(float(reach_m), step_m)
+        s = np.append(np.arange(0.0, self.reach_m, step_m), self.reach_m)
+        # the poses: on the path up to its end, then straight on along its last heading
+        i = np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(seg) - 1)
+        t = (s - cum[i]) / seg[i]
+        self.s = s
+        self.yaw = yaw[i]
+        self.o = p[i] + t[:, None] * d[i]
+        self.cos, self.sin = np.cos(self.yaw), np.sin(self.yaw)
+        # the straight path from the origin: the straight zones themselves
+        self.straight = bool(np.all(np.abs(p[:, 1]) <= 1e-9) and np.all(d[:, 0] > 0)
+                             and abs(p[0, 0]) <= 1e-9)
 
-    def _project(self, xy: np.ndarray):
-        """(station, signed offset, heading of the segment) per point: see the class doc."""
+    def _body(self, q: np.ndarray):
+        """Each point in the body's frame at every pose: (x, y), each (N, poses)."""
+        rx = q[:, 0:1] - self.o[None, :, 0]
+        ry = q[:, 1:2] - self.o[None, :, 1]
+        return rx * self.cos + ry * self.sin, -rx * self.sin + ry * self.cos
+
+    def _sweep(self, xy):
+        """(x, y in the zones' frame, the index of the pose that placed it, -1: its own) per
+        point."""
         q = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        if not len(q):
-            z = np.zeros(0)
-            return z, z, z
-        rel = q[:, None, :] - self.a[None]                               # (N, S, 2)
-        l2 = self.len ** 2
-        raw = (rel * self.d[None]).sum(-1) / l2[None]
-        t = np.clip(raw, 0.0, 1.0)
-        foot = rel - t[..., None] * self.d[None]
-        dist = np.hypot(foot[..., 0], foot[..., 1])
-        side = np.sign(self.d[None, :, 0] * rel[..., 1] - self.d[None, :, 1] * rel[..., 0])
-        nearest = np.argmin(dist, axis=1)
-        rows = np.arange(len(q))
-        dmin = dist[rows, nearest]
-        station = self.s0[None] + t * self.len[None]
-        # another leg: a segment the point lies square beside, near enough
-        near = ((raw >= 0.0) & (raw <= 1.0) & (dist <= self.near_m))
-        near[rows, nearest] = True
-        pick = np.argmin(np.where(near, station, np.inf), axis=1)
-        sgn = side[rows, nearest]
-        sgn[sgn == 0] = 1.0
-        return station[rows, pick], sgn * dmin, self.yaw[pick]
+        out = q.copy()
+        pose = np.full(len(q), -1)
+        if self.straight or not len(q):
+            return out, pose
+        f, hw = self.front_x_m, self.half_width_m
+        # the body cannot reach what is further from the origin than it ever gets
+        far = np.hypot(q[:, 0], q[:, 1]) > self.reach_m + math.hypot(f, hw) + 1.0
+        idx = np.flatnonzero(~far)
+        if len(far) and far.any():
+            out[far] = [f + self.reach_m + 100.0, hw + 100.0]
+        if not len(idx):
+            return out, pose
+        bx, by = self._body(q[idx])
+        gap = np.hypot(np.maximum(0.0, np.maximum(bx - f, -bx)), np.maximum(0.0, np.abs(by) - hw))
+        covered = gap <= 0.0
+        reached = covered.any(axis=1) & ~covered[:, 0]
+        ahead = bx[:, 0] > f                # ahead of the front now
+        # a point the body reaches: where it first covers it; one it does not: where the front
+        # comes level with it (along a straight path, its own x) or, beyond the reach, where
+        # the body comes nearest
+        level = bx <= f
+        k = np.where(reached, np.argmax(covered, axis=1),
+                     np.where(level.any(axis=1), np.argmax(level, axis=1),
+                              np.argmin(gap, axis=1)))
+        r = np.arange(len(idx))
+        # between the pose before and this one, where the front crossed it (a straight path:
+        # exactly its own x)
+        km = np.maximum(k - 1, 0)
+        b0, b1 = bx[r, km], bx[r, k]
+        frac = np.where((k > 0) & (b0 > b1), np.clip((b0 - f) / np.where(b0 > b1, b0 - b1, 1.0),
+                                                     0.0, 1.0), 1.0)
+        x = f + self.s[km] + frac * (self.s[k] - self.s[km])
+        yk = by[r, k]
+        y = np.where(reached, yk, np.where(yk < 0, -1.0, 1.0) * np.maximum(np.abs(yk), hw + 1e-6))
+        sel = reached | (ahead & ~covered[:, 0])
+        out[idx[sel], 0], out[idx[sel], 1] = x[sel], y[sel]
+        pose[idx[sel]] = k[sel]
+        return out, pose
 
     def to_frame(self, xy) -> np.ndarray:
-        s, off, _ = self._project(xy)
-        return np.stack([self.front_x_m + s, off], axis=1) if len(s) else \
-            np.zeros((0, 2))
-
-    def from_frame(self, xy) -> np.ndarray:
-        q = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        s = q[:, 0] - self.front_x_m
-        i = np.clip(np.searchsorted(self.s0, s, side="right") - 1, 0, len(self.s0) - 1)
-        t = (s - self.s0[i]) / self.len[i]
-        base = self.a[i] + t[:, None] * self.d[i]
-        nrm = np.stack([-np.sin(self.yaw[i]), np.cos(self.yaw[i])], axis=1)
-        return base + q[:, 1:2] * nrm
+        return self._sweep(xy)[0]
 
     def heading(self, xy, yaw_rad) -> np.ndarray:
-        _, _, seg_yaw = self._project(xy)
-        return np.asarray(yaw_rad, dtype=np.float64) - seg_yaw
+        """Headings (vehicle frame) of things at ``xy`` relative to the body when it meets
+        them (or comes nearest)."""
+        _, pose = self._sweep(xy)
+        yaw = np.broadcast_to(np.asarray(yaw_rad, dtype=np.float64), (len(pose),)).copy()
+        moved = pose >= 0
+        yaw[moved] -= self.yaw[pose[moved]]
+        return yaw
 
-    def end_m(self) -> float:
-        """The zones end where the curve does (its straight run beyond the path included)."""
-        return self.front_x_m + float(self.s0[-1] + self.len[-1])
+    def from_frame(self, xy) -> np.ndarray:
+        """Zones-frame points back in the vehicle frame, along the front's track (for drawing:
+        the outline of a zone is the front's edge driven along the path)."""
+        q = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        if self.straight:
+            return q.copy()
+        s = np.clip(q[:, 0] - self.front_x_m, 0.0, self.reach_m)
+        i = np.clip(np.searchsorted(self.s, s, side="right") - 1, 0, len(self.s) - 1)
+        o = self.o[i] + (s - self.s[i])[:, None] * np.stack([self.cos[i], self.sin[i]], 1)
+        fx = np.minimum(q[:, 0], self.front_x_m)     # behind the front: the body's own frame
+        return np.stack([o[:, 0] + fx * self.cos[i] - q[:, 1] * self.sin[i],
+                         o[:, 1] + fx * self.sin[i] + q[:, 1] * self.cos[i]], axis=1)
 
 
 def bend_fields(bend: "float | PathBend") -> dict:

@@ -15,7 +15,7 @@ from appliance.config import Config, GateConfig, ZonesConfig, parse_config
 from appliance.decision import DecisionCore
 from appliance.evaluation import decision_record
 from appliance.perception import Detections
-from appliance.zones import PathBend, same_bend, to_path_frame, zone_outline, zone_rects
+from appliance.zones import PathBend, same_bend, zone_outline, zone_rects
 from hal import GateState
 from hal.errors import ConfigError
 from hal.types import VehicleState
@@ -47,35 +47,44 @@ def u_turn(gap=1.6, straight=1.0, step=0.05):
     return np.concatenate([leg1, turn, leg2])
 
 
-def test_a_straight_path_is_the_straight_zones_and_an_arc_is_follow_turn_s_arc():
+def test_a_straight_path_is_the_straight_zones():
     rng = np.random.default_rng(0)
     q = rng.uniform([-1, -3], [20, 3], (300, 2))
-    pb = PathBend(arc_path(0.0, 12.0), F)
-    assert np.allclose(pb.to_frame(q), q, atol=1e-9)
-    assert np.allclose(pb.from_frame(q), q, atol=1e-9)
-    # along a circle the path's frame is the front's circle of [zones] follow_turn (up to the
-    # polyline's chords), away from the front's own corner
-    for k in (0.4, -0.7):
-        pb = PathBend(arc_path(k, 4.0, 401), F)
-        q = rng.uniform([F + 0.3, -0.4], [F + 1.5, 0.4], (100, 2))
-        assert np.allclose(pb.to_frame(q), to_path_frame(q, k, F), atol=0.01)
-        assert np.allclose(pb.from_frame(pb.to_frame(q)), q, atol=0.01)      # chords again
+    pb = PathBend(arc_path(0.0, 12.0), F, HW, reach_m=25.0)
+    assert np.array_equal(pb.to_frame(q), q) and np.array_equal(pb.from_frame(q), q)
+    # nearly straight (a 1000 km radius): what lies ahead of the front is where it was, to
+    # within the placing of the body (every 5 cm, interpolated)
+    pb = PathBend(arc_path(1e-6, 12.0), F, HW, reach_m=12.0)
+    assert not pb.straight
+    ahead = (q[:, 0] > F + 0.1) & (q[:, 0] < 12.0)
+    assert np.allclose(pb.to_frame(q)[ahead], q[ahead], atol=1e-3)
+    beside = q[:, 0] <= F                          # beside or behind the body: its own
+    assert np.array_equal(pb.to_frame(q)[beside], q[beside])
 
 
-def test_beside_two_legs_of_a_u_turn_a_point_is_taken_at_the_nearer():
-    """Conservative: a point the path passes twice within the zones' reach is as near as the
-    first pass, and as central as the nearest pass."""
-    a = np.linspace(0.0, 3.0, 61)
-    th = np.linspace(0.0, math.pi, 40)[1:-1]
-    hairpin = np.concatenate([np.stack([a, 0 * a], 1),
-                              np.stack([3.0 + 0.4 * np.sin(th), 0.4 - 0.4 * np.cos(th)], 1),
-                              np.stack([a[::-1], 0 * a + 0.8], 1)])
-    pb = PathBend(hairpin, 0.0, near_m=0.7)         # front_x 0: the front's curve is the path
-    back = 3.0 + math.pi * 0.4 + 2.0                # the second pass's station at x = 1
-    got = pb.to_frame(np.array([[1.0, 0.5], [1.0, 1.5], [1.0, -0.2]]))
-    assert got[0] == pytest.approx([1.0, 0.3], abs=0.01)      # first pass, offset to the second
-    assert got[1] == pytest.approx([back, -0.7], abs=0.01)    # beyond near_m of the first
-    assert got[2] == pytest.approx([1.0, -0.2], abs=1e-9)     # only the first
+def test_in_a_turn_the_body_sweeps_what_is_beside_it_and_misses_what_is_straight_ahead():
+    """The zones are what the body sweeps: in a tight left turn the inner side of the body
+    meets a crate standing beside its front corner (the straight zones never hold it: behind
+    the front), and a row's end straight ahead of the front, outside the turn, is never met.
+    The front's own track would have missed the first (training seed 28's crate)."""
+    path = arc_path(1.0 / 0.9, 4.0, 401)
+    pb = PathBend(path, F, HW, reach_m=4.0)
+    crate = np.array([[F - 0.2, HW + 0.15]])        # beside the front's left corner
+    row_end = np.array([[F + 0.7, -0.1]])           # straight ahead, 0.7 m
+    x, y = pb.to_frame(crate)[0]
+    assert F < x < F + 1.0 and abs(y) <= HW         # met within the first metre
+    x, y = pb.to_frame(row_end)[0]
+    assert abs(y) > HW                               # never met
+    # the body placed at that distance along the path does cover the crate
+    s = pb.to_frame(crate)[0, 0] - F + 0.05
+    i = int(np.searchsorted(pb.s, s))
+    bx, by = pb._body(crate)
+    assert 0.0 <= bx[0, i] <= F and abs(by[0, i]) <= HW
+    # a U-turn's second pass through the same place counts at the first
+    u = u_turn(gap=1.6, straight=3.0)
+    pb = PathBend(u, F, HW, reach_m=12.0)
+    x, y = pb.to_frame(np.array([[F + 1.0, 0.0]]))[0]
+    assert x == pytest.approx(F + 1.0, abs=0.01) and y == pytest.approx(0.0, abs=1e-6)
 
 
 def test_the_planned_path_is_checked_and_without_one_the_zones_are_straight():
@@ -85,7 +94,7 @@ def test_the_planned_path_is_checked_and_without_one_the_zones_are_straight():
     with pytest.raises(ConfigError, match="path_max_offset_m"):
         parse_config({"zones": {"path_max_offset_m": -1}}, "t")
     with pytest.raises(ValueError, match="two distinct points"):
-        PathBend(np.zeros((3, 2)), F)
+        PathBend(np.zeros((3, 2)), F, HW)
     core = DecisionCore(_gh(follow_path=True))
     for path, why in ((None, "no planned path"),
                       (np.array([[2.0, 0.0], [5.0, 0.0]]), "starts 2.00 m from the vehicle"),
@@ -124,7 +133,7 @@ def test_the_row_end_off_the_path_is_no_stop_and_the_crate_on_it_is():
     # the vehicle 40 degrees into its turn out of the aisle: the path bends left at once
     path = arc_path(1.0 / 0.8, 3.0)
     ahead = _blob((F + 0.7, 0.0))            # the row's end straight ahead, 0.7 m
-    on_path = _blob(PathBend(path, F).from_frame(np.array([[F + 1.2, 0.0]]))[0])
+    on_path = _blob(PathBend(path, F, HW).from_frame(np.array([[F + 1.2, 0.0]]))[0])
     assert abs(on_path[4, 1]) > HW + 0.3     # far to the left: beside the straight zone
     out, _ = _drive(DecisionCore(_gh()), ahead, path)
     assert out.state is GateState.STOP
@@ -133,7 +142,7 @@ def test_the_row_end_off_the_path_is_no_stop_and_the_crate_on_it_is():
     assert pic.verdict.path is not None and same_bend(pic.verdict.bend, pic.verdict.path)
     out, pic = _drive(DecisionCore(_gh(follow_path=True)), on_path, path)
     assert out.state is GateState.STOP
-    assert pic.verdict.nearest_m == pytest.approx(1.2, abs=0.1)    # along the path
+    assert pic.verdict.nearest_m == pytest.approx(1.2, abs=0.15)   # along the path
     # the same with a path that goes straight on: the row's end is a STOP again
     out, _ = _drive(DecisionCore(_gh(follow_path=True)), ahead, arc_path(0.0, 3.0))
     assert out.state is GateState.STOP
