@@ -137,7 +137,7 @@ def drive_config_data(kind: str, seed: int, *, stereo_scale: float = 0.25,
     if pipelines is None:
         pipelines = DEFAULT_PIPELINES.get(
             kind, ("rgbd",) if sc.illumination == "greenhouse" else ("stereo-novelty",))
-    zones = {"front_x_m": round(-rear + length, 3)}
+    zones = {"front_x_m": round(-rear + length, 3), "body_rear_m": round(rear, 3)}
     if sc.illumination == "greenhouse":
         # the sprayer's narrow zone between the bush rows, as `run --sim greenhouse` runs it
         # (with the default 1.25 m half width the rows beside the 0.8 m vehicle were in the

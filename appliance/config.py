@@ -70,6 +70,10 @@ class ZonesConfig:
                                       "will drive, when its autopilot sends one (the "
                                       "simulator: its route); without a usable path this "
                                       "cycle, the zones are straight (or follow_turn's)")
+    body_rear_m: float = _f(0.0, lo=0.0, hi=20.0,
+                            doc="follow_path: how far the vehicle's body reaches behind its "
+                                "origin (the zones are what the body sweeps along the path; "
+                                "in a tight turn its tail swings out)")
     path_max_offset_m: float = _f(0.5, lo=0.0, hi=5.0,
                                   doc="follow_path: a path whose first point is further than "
                                       "this from the vehicle's origin (the vehicle is not on "

@@ -244,7 +244,8 @@ class DecisionCore:
                     # as far as the slow zone reaches, and a cell beyond
                     speed = vehicle.speed_mps if math.isfinite(vehicle.speed_mps) else 0.0
                     reach = stop_length(speed, z) + z.slow_extra_m + 2 * self.cfg.grid.cell_m
-                    return PathBend(p, z.front_x_m, z.half_width_m, reach_m=reach)
+                    return PathBend(p, z.front_x_m, z.half_width_m, reach_m=reach,
+                                    rear_m=z.body_rear_m)
                 except (ValueError, TypeError) as exc:
                     self.path_refused = f"planned path not used: {exc}"
         return self._curvature(vehicle)

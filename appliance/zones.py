@@ -119,8 +119,9 @@ class PathBend:
     rear axle's middle), a polyline in the vehicle frame from at or near the origin, as an
     autopilot plans it (the simulator: its route); the vehicle's heading along it is the
     path's direction. The zones are what the vehicle's body sweeps as it drives on along it:
-    the body is the rectangle from the origin to the front (``front_x_m``), ``half_width_m``
-    (the zones' half width, margin included) to each side. A point is ``s`` metres into the
+    the body is the rectangle from ``rear_m`` behind the origin to the front (``front_x_m``),
+    ``half_width_m`` (the zones' half width, margin included) to each side (in a tight turn
+    the tail swings out: training seed 28's crate, 1 cm from the sprayer's tail). A point is ``s`` metres into the
     zones when the body, driven ``s`` metres on along the path, first covers it; so in this
     frame ``x`` = ``front_x_m`` + that ``s`` and ``y`` its offset across the body then, and the
     zones are the straight rectangles again (stop: ``x`` up to the front + the stopping
@@ -135,7 +136,7 @@ class PathBend:
     is placed every this along the path (a distance in the zones is good to it)."""
 
     def __init__(self, path_xy, front_x_m: float, half_width_m: float, reach_m: float = 15.0,
-                 step_m: float = 0.05):
+                 step_m: float = 0.05, rear_m: float = 0.0):
         p = np.asarray(path_xy, dtype=np.float64).reshape(-1, 2)
         p = p[np.all(np.isfinite(p), axis=1)]
         if len(p) >= 2:
@@ -145,6 +146,7 @@ class PathBend:
             raise ValueError("a planned path needs two distinct points")
         self.path_xy = p
         self.front_x_m, self.half_width_m = float(front_x_m), float(half_width_m)
+        self.rear_m = max(0.0, float(rear_m))
         d = np.diff(p, axis=0)
         seg = np.hypot(d[:, 0], d[:, 1])
         cum = np.concatenate([[0.0], np.cumsum(seg)])
@@ -185,7 +187,8 @@ class PathBend:
         if not len(idx):
             return out, pose
         bx, by = self._body(q[idx])
-        gap = np.hypot(np.maximum(0.0, np.maximum(bx - f, -bx)), np.maximum(0.0, np.abs(by) - hw))
+        gap = np.hypot(np.maximum(0.0, np.maximum(bx - f, -self.rear_m - bx)),
+                       np.maximum(0.0, np.abs(by) - hw))
         covered = gap <= 0.0
         reached = covered.any(axis=1) & ~covered[:, 0]
         ahead = bx[:, 0] > f                # ahead of the front now

@@ -80,6 +80,12 @@ def test_in_a_turn_the_body_sweeps_what_is_beside_it_and_misses_what_is_straight
     i = int(np.searchsorted(pb.s, s))
     bx, by = pb._body(crate)
     assert 0.0 <= bx[0, i] <= F and abs(by[0, i]) <= HW
+    # the tail swings out: a post just beside the rear corner on the outside of the turn is
+    # met by a body that reaches 0.5 m behind its origin, not by one that ends there
+    post = np.array([[-0.2, -(HW + 0.04)]])
+    assert abs(pb.to_frame(post)[0, 1]) > HW
+    x, y = PathBend(path, F, HW, reach_m=4.0, rear_m=0.5).to_frame(post)[0]
+    assert F < x < F + 1.0 and abs(y) <= HW
     # a U-turn's second pass through the same place counts at the first
     u = u_turn(gap=1.6, straight=3.0)
     pb = PathBend(u, F, HW, reach_m=12.0)
