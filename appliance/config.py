@@ -600,4 +600,4 @@ def default_config() -> Config:
 # zones the bushes are in the stop zone: docs/rgbd.md). `run --sim SCENE` without a --config
 # and the campaign's drives run these, so the two measure the same box.
 SCENE_PIPELINES = {"greenhouse": ("rgbd",)}
-SCENE_ZONES = {"greenhouse": {"front_x_m": 1.1, "half_width_m": 0.5}}
+SCENE_ZONES = {"greenhouse": {"front_x_m": 1.1, "half_width_m": 0.5, "body_rear_m": 0.1}}

@@ -303,6 +303,9 @@ def test_a_greenhouse_drive_runs_the_zones_run_sim_greenhouse_runs():
                                                SCENE_ZONES["greenhouse"]["half_width_m"])
     st = parse_config(drive_config_data("stubble-coverage", 1), "drive").zones
     assert st.half_width_m == 1.25 and st.front_x_m == 2.2
+    # the body's tail behind the origin ([zones] follow_path sweeps it): the vehicle's own
+    assert gh.body_rear_m == SCENE_ZONES["greenhouse"]["body_rear_m"] == 0.1
+    assert st.body_rear_m == 0.4
 
 
 def test_a_stop_for_a_walker_about_to_meet_the_vehicle_is_scored_true():
