@@ -19,6 +19,7 @@ from appliance.zones import PathBend, same_bend, zone_outline, zone_rects
 from hal import GateState
 from hal.errors import ConfigError
 from hal.types import VehicleState
+from tests.test_follow_turn import _blob, _gh          # the greenhouse sprayer's zones; a post
 
 S = 10**9
 DT = S // 10
@@ -116,11 +117,6 @@ def test_the_planned_path_is_checked_and_without_one_the_zones_are_straight():
     assert DecisionCore(_gh())._bend(VehicleState(0, 0, path_xy=u_turn())) == 0.0
 
 
-def _gh(**kw):
-    return Config(gate=GateConfig(hold_off_s=0.3),
-                  zones=ZonesConfig(front_x_m=F, half_width_m=HW, min_stop_m=2.0, **kw))
-
-
 def _drive(core, pts, path, n=4):
     out = pic = None
     for k in range(n):
@@ -128,11 +124,6 @@ def _drive(core, pts, path, n=4):
         pic = core.perceive({"rgbd": Detections(points_xy=pts)}, v, k * DT)
         out = core.decide(k * DT, [], pic)
     return out, pic
-
-
-def _blob(xy):
-    o = np.array([-0.05, 0.0, 0.05])
-    return np.array([[xy[0] + a, xy[1] + b] for a in o for b in o])
 
 
 def test_the_row_end_off_the_path_is_no_stop_and_the_crate_on_it_is():
