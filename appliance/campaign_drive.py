@@ -337,8 +337,10 @@ class Drive:
         """Real obstacles near the vehicle (the simulator's world, hit ones included): per
         obstacle its index, id, class, ``ahead`` (nearest corridor point from the front, inf
         when none), ``d_zone`` (distance of its footprint to the stop zone rectangle), ``pts``
-        (footprint in the level vehicle frame), ``in_stop`` (with the tolerances), ``deep``
-        (the tolerances inside the stop zone). With a ``curvature_1pm`` (the box's zones
+        (footprint in the zones' frame), ``in_stop`` (with the tolerances), ``deep`` (the
+        tolerances inside the stop zone), ``pts_vehicle`` / ``ahead_straight`` (the footprint
+        in the level vehicle frame, and ``ahead`` in the straight corridor: a collision's
+        contact part and the box's cells are judged there). With a ``curvature_1pm`` (the box's zones
         bent along a turn, ``[zones] follow_turn``) all of it is judged in the path's frame
         (appliance/zones.to_path_frame): the corridor is the arc the vehicle drives; with a
         zones.PathBend (``follow_path``) the planned path's corridor, and a walker's meeting
@@ -360,11 +362,19 @@ class Drive:
             ay = np.abs(p[:, 1])
             corridor = (ay <= hw + self.lateral_tol_m) & (p[:, 0] >= -rear)
             ahead = float((p[corridor, 0] - fx).min()) if corridor.any() else math.inf
+            if p is p_vehicle:
+                ahead_straight = ahead
+            else:                        # the straight corridor's, whatever the box's zones
+                straight = (np.abs(p_vehicle[:, 1]) <= hw + self.lateral_tol_m) & \
+                    (p_vehicle[:, 0] >= -rear)
+                ahead_straight = (float((p_vehicle[straight, 0] - fx).min())
+                                  if straight.any() else math.inf)
             dx = np.maximum(0.0, np.maximum(fx - p[:, 0], p[:, 0] - (fx + stop_len_m)))
             dy = np.maximum(0.0, ay - hw)
             deep = (ay <= hw - self.lateral_tol_m) & (p[:, 0] >= fx - 0.0) & \
                 (p[:, 0] <= fx + stop_len_m - self.zone_tol_m)
             out.append({"k": k, "id": o.id, "cls": o.cls, "ahead": ahead, "pts": p,
+                        "pts_vehicle": p_vehicle, "ahead_straight": ahead_straight,
                         "d_zone": float(np.hypot(dx, dy).min()),
                         **(self._meets(o, p_vehicle, rear, 0.0)
                            if isinstance(curvature_1pm, PathBend)
@@ -438,7 +448,7 @@ class Drive:
             self.shadow.wait_idle()
         verdict = None if pic is None else pic.verdict
         s_len = verdict.stop_len_m if verdict is not None else self.zones.min_stop_m
-        s_kappa = 0.0 if verdict is None else verdict.bend
+        s_kappa = getattr(verdict, "bend", 0.0)
         if abs(s_len - stop_len) > 1e-9 or not same_bend(s_kappa, kappa):
             truth = self.truth(s_len, s_kappa)
         state = out.state
@@ -504,7 +514,7 @@ class Drive:
         state = out.state
         t_s = res.index / self.rate
         stop_len = res.verdict.stop_len_m if res.verdict is not None else self.zones.min_stop_m
-        kappa = 0.0 if res.verdict is None else res.verdict.bend
+        kappa = getattr(res.verdict, "bend", 0.0)      # what the box laid its zones along
         truth = self.truth(stop_len, kappa)
         cells = np.asarray(res.cells_xy, np.float64).reshape(-1, 2)
         x, y, yaw = v.pose()
@@ -517,9 +527,12 @@ class Drive:
         # detection streaks of the in-path obstacles ahead
         for o in truth:
             k = o["k"]
-            if math.isfinite(o["ahead"]) and o["ahead"] >= 0.0:
-                self._ahead_t[k] = t_s         # in the corridor ahead (a collision's contact)
-            if math.isfinite(o["ahead"]) and o["ahead"] >= -0.5 and self._held(cells, o["pts"]):
+            # in the straight corridor ahead (a collision's contact: what a forward-looking
+            # box is there to see, whatever its zones followed)
+            if math.isfinite(o["ahead_straight"]) and o["ahead_straight"] >= 0.0:
+                self._ahead_t[k] = t_s
+            if math.isfinite(o["ahead"]) and o["ahead"] >= -0.5 and \
+                    self._held(cells, o["pts_vehicle"]):     # the box's cells: vehicle frame
                 self._streak.setdefault(k, o["ahead"])
             else:
                 self._streak.pop(k, None)

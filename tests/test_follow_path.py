@@ -189,3 +189,28 @@ def test_a_box_set_to_follow_a_path_that_gets_none_stops_on_straight_zones_and_s
     clock, loop, laser, link = make_loop(Config())      # off: the key says so
     loop.cycle()
     assert loop.status()["obstacles"]["zones_along"] is None
+
+
+def test_the_campaign_judges_contact_and_held_cells_in_the_vehicle_frame():
+    """The campaign's truth in the zones' frame of a box that follows its path, and beside it
+    what a collision's contact part and the box's cells are judged by: the footprint in the
+    vehicle frame and the straight corridor, the same as for a box with straight zones."""
+    from appliance.campaign_drive import Drive, deep_merge, drive_config_data
+    data = deep_merge(drive_config_data("greenhouse-coverage", 7),
+                      {"zones": {"follow_path": True}})
+    drv = Drive("greenhouse-coverage", 7, 0.01, config_data=data).build()
+    try:
+        v = drv.vehicle
+        turns = np.flatnonzero(np.abs(np.diff(v._yaw)) > 0.02)
+        v.s = float(v._s[turns[0]]) - 0.3            # entering the first U-turn
+        bend = DecisionCore(parse_config(data, "t"))._bend(
+            VehicleState(0, 0, speed_mps=0.7, path_xy=v.planned_path()))
+        assert isinstance(bend, PathBend)
+        bent, straight = drv.truth(2.0, bend), drv.truth(2.0, 0.0)
+        assert [o["id"] for o in bent] == [o["id"] for o in straight] and bent
+        for b, s_ in zip(bent, straight):
+            assert np.array_equal(b["pts_vehicle"], s_["pts"])
+            assert b["ahead_straight"] == s_["ahead"] == s_["ahead_straight"]
+        assert any(not np.allclose(b["pts"], b["pts_vehicle"]) for b in bent)
+    finally:
+        drv.daemon.shutdown()
