@@ -235,9 +235,14 @@ class DecisionCore:
                 self.path_refused = "no planned path"
             else:
                 try:
-                    p = np.asarray(path, dtype=np.float64).reshape(-1, 2)
-                    if not len(p) or not np.all(np.isfinite(p[0])):
-                        raise ValueError("its first point is not a number")
+                    p = np.asarray(path, dtype=np.float64)
+                    if p.ndim != 2 or p.shape[1] != 2:
+                        raise ValueError(f"it is not a list of (x, y) points (shape "
+                                         f"{p.shape})")
+                    if not np.all(np.isfinite(p)):
+                        raise ValueError("it has points that are not numbers")
+                    if not len(p):
+                        raise ValueError("it has no points")
                     if math.hypot(p[0, 0], p[0, 1]) > z.path_max_offset_m:
                         raise ValueError(f"it starts {math.hypot(p[0, 0], p[0, 1]):.2f} m from "
                                          f"the vehicle")

@@ -105,9 +105,12 @@ def test_the_planned_path_is_checked_and_without_one_the_zones_are_straight():
     core = DecisionCore(_gh(follow_path=True))
     for path, why in ((None, "no planned path"),
                       (np.array([[2.0, 0.0], [5.0, 0.0]]), "starts 2.00 m from the vehicle"),
-                      (np.array([[math.nan, 0.0], [5.0, 0.0]]), "not a number"),
+                      (np.array([[math.nan, 0.0], [5.0, 0.0]]), "not numbers"),
+                      (np.array([[0.0, 0.0], [2.0, math.inf], [4.0, 0.0]]), "not numbers"),
                       (np.array([[0.0, 0.0]]), "two distinct points"),
-                      (np.array([[0.0, 0.0, 1.0]]), "")):
+                      (np.zeros((0, 2)), "no points"),
+                      (np.zeros((2, 3)), "not a list of (x, y) points"),
+                      ("north", "planned path not used")):
         v = VehicleState(0, 0, speed_mps=0.5, path_xy=path)
         assert core._bend(v) == 0.0
         assert why in core.path_refused and core.path_refused
