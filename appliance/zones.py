@@ -138,7 +138,8 @@ class PathBend:
     def __init__(self, path_xy, front_x_m: float, half_width_m: float, reach_m: float = 15.0,
                  step_m: float = 0.05, rear_m: float = 0.0):
         p = np.asarray(path_xy, dtype=np.float64).reshape(-1, 2)
-        p = p[np.all(np.isfinite(p), axis=1)]
+        if not np.all(np.isfinite(p)):
+            raise ValueError("a planned path's points must be numbers")
         if len(p) >= 2:
             keep = np.concatenate([[True], np.hypot(*np.diff(p, axis=0).T) > 1e-6])
             p = p[keep]
