@@ -243,9 +243,9 @@ class DecisionCore:
                         raise ValueError("it has points that are not numbers")
                     if not len(p):
                         raise ValueError("it has no points")
-                    if math.hypot(p[0, 0], p[0, 1]) > z.path_max_offset_m:
-                        raise ValueError(f"it starts {math.hypot(p[0, 0], p[0, 1]):.2f} m from "
-                                         f"the vehicle")
+                    off = math.hypot(p[0, 0], p[0, 1])
+                    if off > z.path_max_offset_m:
+                        raise ValueError(f"it starts {off:.2f} m from the vehicle")
                     # as far as the slow zone reaches, and a cell beyond
                     speed = vehicle.speed_mps if math.isfinite(vehicle.speed_mps) else 0.0
                     reach = stop_length(speed, z) + z.slow_extra_m + 2 * self.cfg.grid.cell_m

@@ -19,20 +19,20 @@ STATE_BGR = {GateState.STOP: (40, 40, 220), GateState.SLOW: (0, 190, 230),
 PANEL_H = 420
 
 
-def curvature_of(res):
+def bend_of(res):
     """What the box laid its zones along this cycle: an arc (0: straight; [zones]
     follow_turn) or the planned path (a zones.PathBend; [zones] follow_path)."""
     v = getattr(res, "verdict", None)
     return 0.0 if v is None else v.bend
 
 
-def draw_zones(img, px, z, stop_len_m: float, curvature_1pm=0.0) -> None:
-    """The slow and stop zones on a top view (``px(x, y)`` -> pixel), bent along the turn
-    when the box bent them."""
+def draw_zones(img, px, z, stop_len_m: float, bend=0.0) -> None:
+    """The slow and stop zones on a top view (``px(x, y)`` -> pixel), bent along the turn or
+    laid along the planned path as the box laid them (``bend``: :func:`bend_of`)."""
     f, hw = z.front_x_m, z.half_width_m
     for x0, x1, state, thick in ((f + stop_len_m, f + stop_len_m + z.slow_extra_m,
                                   GateState.SLOW, 1), (f, f + stop_len_m, GateState.STOP, 2)):
-        pts = np.array([px(x, y) for x, y in zone_outline(x0, x1, hw, curvature_1pm, f)],
+        pts = np.array([px(x, y) for x, y in zone_outline(x0, x1, hw, bend, f)],
                        np.int32)
         cv2.polylines(img, [pts], True, STATE_BGR[state], thick)
 
@@ -205,7 +205,7 @@ def grid_panel(res, evidence: np.ndarray, cfg: Config) -> np.ndarray:
     speed = res.inputs.vehicle.speed_mps if res.inputs and res.inputs.vehicle else 0.0
     stop = stop_length(speed, z)
     f = z.front_x_m
-    draw_zones(img, px, z, stop, curvature_of(res))
+    draw_zones(img, px, z, stop, bend_of(res))
     for e in z.exclusion:
         cv2.rectangle(img, px(e.x_max_m, e.y_max_m), px(e.x_min_m, e.y_min_m), (200, 120, 0), 1)
     # tracks: footprint, id, distance, cues

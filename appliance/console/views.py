@@ -8,7 +8,7 @@ import dataclasses
 import cv2
 import numpy as np
 
-from appliance.snapshot import _label, camera_panel, curvature_of, draw_zones, project_cells
+from appliance.snapshot import _label, camera_panel, bend_of, draw_zones, project_cells
 from appliance.zones import stop_length
 
 GRID_PX = 480           # height of the grid picture
@@ -118,7 +118,7 @@ def grid_view(res, evidence: np.ndarray, cfg, tracks=(), height_px: int = GRID_P
     speed = veh.speed_mps if veh is not None else 0.0
     stop = stop_length(speed, z)
     f = z.front_x_m
-    draw_zones(img, px, z, stop, curvature_of(res))
+    draw_zones(img, px, z, stop, bend_of(res))
     for e in z.exclusion:
         cv2.rectangle(img, px(e.x_max_m, e.y_max_m), px(e.x_min_m, e.y_min_m), (200, 120, 0), 1)
     cv2.rectangle(img, px(f, 0.75), px(min(0.0, f - 2.6), -0.75), (220, 220, 220), -1)
