@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import deque
 from dataclasses import dataclass, replace
 
 import cv2
@@ -237,6 +238,36 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
                                             "the novelty model's update like any obstacle point "
                                             "(false: they are learnt, so low stubble in a novel "
                                             "cell cannot hold that cell novel)")
+    # Off by default (twenty-seventh session, being measured): the camera box's stubble false
+    # stops on training drives were tuft tops 0.5-0.75 m high raised by the depth cue alone
+    # (docs/front-end.md "The field's canopy")
+    canopy_floor: bool = _f(False, doc="with the depth cue: obstacle points that only the depth "
+                                       "cue put into matching (neither novelty nor the learned "
+                                       "cue) count only above the field's canopy: the "
+                                       "median over the last canopy_frames frames of the "
+                                       "canopy_quantile of the heights of each frame's coarse "
+                                       "points on the field (in no novel or learned-cue cell, "
+                                       "at most canopy_max_range_m ahead, canopy_min_m to "
+                                       "canopy_max_m high) + canopy_margin_m, at most "
+                                       "canopy_max_m; off: the band's floor for every point")
+    canopy_quantile: float = _f(0.99, lo=0.5, hi=1.0, doc="canopy_floor: the quantile")
+    canopy_margin_m: float = _f(0.2, lo=0.0, hi=2.0,
+                                doc="canopy_floor: above the canopy by this (a tuft's dense points "
+                                    "stand up to ~0.2 m over the coarse pass's quantile)")
+    canopy_frames: int = _f(10, lo=1, hi=1000,
+                            doc="canopy_floor: the median of this many frames' canopies (one "
+                                "frame's quantile moves by 0.1-0.3 m; the field's does not)")
+    canopy_max_m: float = _f(1.0, lo=0.0, hi=5.0,
+                             doc="canopy_floor: the floor is never higher (what stands taller "
+                                 "counts by geometry alone, whatever the field)")
+    canopy_min_m: float = _f(0.1, lo=0.0, hi=2.0,
+                             doc="canopy_floor: coarse points lower than this are the soil, "
+                                 "not the canopy, and are left out of the quantile")
+    canopy_max_range_m: float = _f(12.0, lo=1.0, hi=200.0,
+                                   doc="canopy_floor: coarse points at most this far ahead")
+    canopy_min_points: int = _f(200, lo=1, hi=10 ** 7,
+                                doc="canopy_floor: fewer field points above canopy_min_m: no "
+                                    "canopy this frame (the band's floor for every point)")
 
 
 # The values of issue #14's new stages that give the pipeline as it was before them (the
@@ -245,6 +276,18 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
 PRE_ISSUE_14 = {"boot_guard": False, "pad_left": False, "support_min": 0.0, "uniqueness": 10,
                 "dark_level": 0.0, "support_known_min": 0.0, "stalk_max_width_m": 0.0,
                 "near_min_depth_m": 0.0}
+
+
+def canopy_height(h: np.ndarray, pts: np.ndarray, cued: np.ndarray, o) -> float | None:
+    """The field's canopy (``canopy_floor``): the ``o.canopy_quantile`` of the heights ``h``
+    of the coarse points ``pts`` (vehicle frame) that lie on the field (``cued`` False: in no
+    novel or learned-cue cell), 0 < x <= ``canopy_max_range_m``, ``canopy_min_m`` <= h <=
+    ``canopy_max_m``; None when fewer than ``canopy_min_points`` are left."""
+    sel = ((~cued) & (h >= o.canopy_min_m) & (h <= o.canopy_max_m) & (pts[:, 0] > 0)
+           & (pts[:, 0] <= o.canopy_max_range_m))
+    if np.count_nonzero(sel) < o.canopy_min_points:
+        return None
+    return float(np.quantile(h[sel], o.canopy_quantile))
 
 
 def rescale_mask(mask: np.ndarray, f: int, k: int, out_hw: tuple[int, int]) -> np.ndarray:
@@ -307,6 +350,8 @@ class StereoNoveltyPipeline(Pipeline):
         self._ground = GroundModel.level()     # this frame's ground (ground_fit)
         self._laser_ground = None              # this frame's fit for the laser (ground_for_laser)
         self._source_masks: dict = {}          # cue name -> camera mask (1/kd) of this frame
+        self._canopy_src = None                # (points, pixels, factor) of the coarse pass
+        self._canopies: deque = deque(maxlen=self.options.canopy_frames)   # canopy_floor
 
     # ---- the regions that get dense stereo -------------------------------------------------
     def _cells_to_match(self, res, size_wh: tuple[int, int], extra: dict) -> np.ndarray:
@@ -391,6 +436,8 @@ class StereoNoveltyPipeline(Pipeline):
         cj = np.minimum((px[inb, 0] // cell).astype(np.int64), cols - 1)
         ok = (px[inb, 1] < rows * cell) & (px[inb, 0] < cols * cell)
         counts = np.bincount(ci[ok] * cols + cj[ok], minlength=rows * cols).reshape(rows, cols)
+        if o.canopy_floor:
+            self._canopy_src = (pts, px, kc)
         raised = counts >= o.depth_cue_min_fraction * cell * cell
         return dilate_cells(raised, o.depth_cue_dilate_cells)
 
@@ -530,6 +577,7 @@ class StereoNoveltyPipeline(Pipeline):
         M = fr.calib.mount.camera_to_vehicle()
         H, W = fr.left.shape[:2]
         self._coarse = None
+        self._canopy_src = None
         t0, c0 = time.perf_counter(), time.thread_time()
         kd = match_factor(W, o.descriptor_width_px)
         if kd > 1:
@@ -588,6 +636,8 @@ class StereoNoveltyPipeline(Pipeline):
                     self._compact_novelty(o.low_band_max_novel_share)
                 low_added[idx[self._other_cue(px[idx], k / float(kd), names)]] = True
                 keep |= low_added
+        canopy, below_canopy = self._below_canopy(pts, px, h, keep, ground, calib.mount.z_m,
+                                                  k, kd)
         if o.support_min > 0 and keep.any():
             idx = np.flatnonzero(keep)
             sup = vertical_support(disp, px[idx], pts[idx], calib, ground,
@@ -631,6 +681,8 @@ class StereoNoveltyPipeline(Pipeline):
             "boot": None if boot is None else {"candidates": len(boot["candidates"]),
                                                "excluded_cells": int(boot["exclude"].sum())},
             "novel_fraction": float(res.mask.mean()),
+            "canopy": None if not o.canopy_floor else {"height_m": canopy,
+                                                       "dropped_points": below_canopy},
             "novel_cells_raw": int(res.raw.sum()),
             # cells of the novelty grid each cue raised (a pixel mask counts in cell areas)
             "cue_cells": {n: int(np.count_nonzero(c)) if c.shape == res.mask.shape else
@@ -721,6 +773,27 @@ class StereoNoveltyPipeline(Pipeline):
         if o.use_attitude and vehicle is not None:
             pitch += float(vehicle.pitch_rad)
         return cam.cy - cam.fy * math.tan(pitch)
+
+    def _below_canopy(self, pts, px, h, keep, ground, mount_z: float, k: int, kd: int):
+        """``canopy_floor``: clear ``keep`` (in place) for the obstacle points under the
+        field's canopy + margin that only the depth cue put into matching. Returns (the
+        canopy's height or None, how many points were dropped)."""
+        o: StereoNoveltyConfig = self.options
+        if not o.canopy_floor or self._canopy_src is None:
+            return None, 0
+        cpts, cpx, kc = self._canopy_src
+        now = canopy_height(heights_above(ground, cpts, o, mount_z), cpts,
+                            self._other_cue(cpx, kc / float(kd)), o)
+        if now is not None:
+            self._canopies.append(now)
+        canopy = float(np.median(self._canopies)) if self._canopies else None
+        if canopy is None or not keep.any():
+            return canopy, 0
+        floor = min(canopy + o.canopy_margin_m, o.canopy_max_m)
+        idx = np.flatnonzero(keep & (h < floor))
+        geometry = idx[~self._other_cue(px[idx], k / float(kd))]
+        keep[geometry] = False
+        return canopy, int(len(geometry))
 
     def _drop_stalks(self, pts, px, h, keep, f: float, names=("novelty", "learned")) -> int:
         """``stalk_max_width_m``: clear ``keep`` (in place) for the obstacle points that are a
