@@ -636,7 +636,7 @@ class StereoNoveltyPipeline(Pipeline):
                     self._compact_novelty(o.low_band_max_novel_share)
                 low_added[idx[self._other_cue(px[idx], k / float(kd), names)]] = True
                 keep |= low_added
-        canopy, below_canopy = self._below_canopy(pts, px, h, keep, ground, calib.mount.z_m,
+        canopy, under_canopy = self._below_canopy(pts, px, h, keep, ground, calib.mount.z_m,
                                                   k, kd)
         if o.support_min > 0 and keep.any():
             idx = np.flatnonzero(keep)
@@ -650,6 +650,12 @@ class StereoNoveltyPipeline(Pipeline):
         t3, c3 = time.perf_counter(), time.thread_time()
         # obstacle-mask feedback: cells near what was just detected are never learnt
         fb = keep if low_added is None or o.low_band_feedback else keep & ~low_added
+        if under_canopy is not None:
+            # what the canopy took is no obstacle, but nor is it field the box can vouch for:
+            # it stays out of the update as before (learnt, an obstacle seen far off by its
+            # lower part, which the depth cue raised, was field by the time it came near:
+            # tests/test_canopy.py, the cattle)
+            fb = fb | under_canopy
         exclude = obstacle_cells(px[fb] * (k / kd), res.mask.shape, res.cell_px,
                                  o.obstacle_margin_px / kd)
         boot = None
@@ -681,8 +687,9 @@ class StereoNoveltyPipeline(Pipeline):
             "boot": None if boot is None else {"candidates": len(boot["candidates"]),
                                                "excluded_cells": int(boot["exclude"].sum())},
             "novel_fraction": float(res.mask.mean()),
-            "canopy": None if not o.canopy_floor else {"height_m": canopy,
-                                                       "dropped_points": below_canopy},
+            "canopy": None if not o.canopy_floor else {
+                "height_m": canopy,
+                "dropped_points": 0 if under_canopy is None else int(under_canopy.sum())},
             "novel_cells_raw": int(res.raw.sum()),
             # cells of the novelty grid each cue raised (a pixel mask counts in cell areas)
             "cue_cells": {n: int(np.count_nonzero(c)) if c.shape == res.mask.shape else
@@ -777,10 +784,10 @@ class StereoNoveltyPipeline(Pipeline):
     def _below_canopy(self, pts, px, h, keep, ground, mount_z: float, k: int, kd: int):
         """``canopy_floor``: clear ``keep`` (in place) for the obstacle points under the
         field's canopy + margin that only the depth cue put into matching. Returns (the
-        canopy's height or None, how many points were dropped)."""
+        canopy's height or None, a mask of the points dropped or None)."""
         o: StereoNoveltyConfig = self.options
         if not o.canopy_floor or self._canopy_src is None:
-            return None, 0
+            return None, None
         cpts, cpx, kc = self._canopy_src
         now = canopy_height(heights_above(ground, cpts, o, mount_z), cpts,
                             self._other_cue(cpx, kc / float(kd)), o)
@@ -788,12 +795,13 @@ class StereoNoveltyPipeline(Pipeline):
             self._canopies.append(now)
         canopy = float(np.median(self._canopies)) if self._canopies else None
         if canopy is None or not keep.any():
-            return canopy, 0
+            return canopy, None
         floor = min(canopy + o.canopy_margin_m, o.canopy_max_m)
         idx = np.flatnonzero(keep & (h < floor))
-        geometry = idx[~self._other_cue(px[idx], k / float(kd))]
-        keep[geometry] = False
-        return canopy, int(len(geometry))
+        dropped = np.zeros(len(keep), bool)
+        dropped[idx[~self._other_cue(px[idx], k / float(kd))]] = True
+        keep &= ~dropped
+        return canopy, dropped
 
     def _drop_stalks(self, pts, px, h, keep, f: float, names=("novelty", "learned")) -> int:
         """``stalk_max_width_m``: clear ``keep`` (in place) for the obstacle points that are a
