@@ -276,6 +276,16 @@ def aggregate(results: list[dict]) -> dict:
         for k, v in r.get("collisions_by_contact", {}).items():   # older results lack it
             by_contact[k] = by_contact.get(k, 0) + v
     samples = [r["model"]["samples_max"] for r in results if r["model"]["samples_max"]]
+    # the false stops after each drive's first BOOT_S (a drive boots the box; a field box boots
+    # once a day): per hour of the time after them. None when a result predates the count
+    from appliance.campaign_drive import BOOT_S
+    boot = None if any("false_stops_boot" not in r for r in results) else \
+        tot("false_stops_boot")
+    after_h = sum(max(0.0, r["simulated_s"] - BOOT_S) for r in results) / 3600.0
+    after = None if boot is None else {
+        "boot_s": BOOT_S, "false_stops": fs - boot, "hours": round(after_h, 6),
+        "false_stops_per_hour": None if after_h <= 0 else round((fs - boot) / after_h, 3),
+        "false_stops_per_hour_ci95": poisson_ci95(fs - boot, after_h)}
     shadow = None
     sh = [r["shadow"] for r in results if r.get("shadow")]
     if sh:
@@ -297,6 +307,8 @@ def aggregate(results: list[dict]) -> dict:
         "false_stops": fs,
         "false_stops_per_hour": None if hours <= 0 else round(fs / hours, 3),
         "false_stops_per_hour_ci95": poisson_ci95(fs, hours),
+        "false_stops_boot": boot,
+        "after_boot": after,
         "true_stops": tot("true_stops"),
         "missed_stops": tot("missed_stops"),
         "fault_stops": tot("fault_stops"),
@@ -761,6 +773,12 @@ def format_summary(s: dict) -> str:
     for cls, d in s["detection_distance_m"].items():
         lines.append(f"detection distance {cls}: min {d['min']} m, median {d['median']} m "
                      f"({d['stops']} stops)")
+    ab = s.get("after_boot")
+    if ab is not None:
+        lines.append(f"after each drive's first {ab['boot_s']:.0f} s (the boot; a field box boots "
+                     f"once, a drive each time): {ab['false_stops']} false stops, "
+                     f"{ab['false_stops_per_hour']}/h (95 % CI {ab['false_stops_per_hour_ci95']}"
+                     f"); {s['false_stops_boot']} in the first {ab['boot_s']:.0f} s")
     t = s["timing"]
     lines.append(f"false stops per hour {s['false_stops_per_hour']} (95 % CI {ci}); wall "
                  f"{t['wall_s'] / 60:.1f} min, {t['simulated_hours_per_cpu_hour']} simulated h "

@@ -208,6 +208,23 @@ def test_aggregate_counts_rates_and_detection_distances():
                                                    "stopped_without_hold": 1}
     assert s["detection_distance_m"]["drum"]["median"] == 4.0
     assert s["false_stops_by_place"] == {"lane": 3}
+    assert s["false_stops_boot"] is None and s["after_boot"] is None   # results before it
+
+
+def test_false_stops_after_the_boot_are_reported_apart():
+    """A drive boots the box; a 2-minute drive boots it 30 times an hour, a field box once a
+    day: the false stops of each drive's first BOOT_S seconds are counted apart, and the rate
+    after them is per hour of the time after them."""
+    from appliance.campaign_drive import BOOT_S
+    rs = [_result("a", 1, 120.0, 3), _result("a", 2, 120.0, 1), _result("a", 3, 5.0, 1)]
+    for r, b in zip(rs, (2, 0, 1)):
+        r["false_stops_boot"] = b
+    s = aggregate(rs)
+    after_h = (2 * (120.0 - BOOT_S) + 0.0) / 3600.0
+    assert s["false_stops_boot"] == 3 and s["false_stops"] == 5
+    assert s["after_boot"] == {"boot_s": BOOT_S, "false_stops": 2, "hours": round(after_h, 6),
+                               "false_stops_per_hour": round(2 / after_h, 3),
+                               "false_stops_per_hour_ci95": poisson_ci95(2, after_h)}
 
 
 def test_eval_many_runs_on_ray_is_one_table_equal_to_one_by_one(tmp_path, capsys, local_ray):
@@ -283,6 +300,8 @@ def test_a_boot_stop_that_goes_on_for_a_phantom_is_a_false_stop():
         assert drv.counts["false"] == 1 and len(stops) == 1, drv.events
         assert stops[0]["kind"] == "false" and stops[0]["duration_s"] == 0.5
         assert "phantom" in stops[0]["cause"]
+        # ... and a boot's: it began in the drive's first BOOT_S seconds
+        assert drv.result(1.0, 1.0)["false_stops_boot"] == 1
         # a STOP that is already an episode is not counted twice when its reason changes
         cycle(9, GateState.STOP, "laser: stale")
         cycle(10, GateState.STOP, "obstacle 1.2 m ahead in the stop zone (3.8 m)")
