@@ -104,6 +104,43 @@ def test_person_ahead_at_boot_is_held_and_never_learnt(boot_frames):
     pipe.close()
 
 
+def test_warm_up_learns_the_field_every_other_frame_and_never_the_person_ahead():
+    """``warmup_updates`` (off by default): the model's first updates come every
+    ``warmup_every_frames`` frames instead of every 40. Booted with the person ahead and the
+    vehicle standing, 10 updates in 2 s: the person is held in every frame and its cells are
+    still novel after them."""
+    f = _person_at_boot()
+    frames = []
+    for i in range(21):
+        s = f.render(i * 100_000_000, i)
+        frames.append((s.stereo, s.vehicle, s.truth))
+    ob = frames[0][2][0]
+    pipe, out = _run(frames, pad_left=True, warmup_updates=10, warmup_every_frames=2)
+    try:
+        assert pipe.novelty.model.updates == 10          # frame 1, then 2, 4, ... 18
+        assert all(_near(det.points_xy, ob) for det, _ in out)
+        r, c = _person_cells(pipe, (ob["x_m"], ob["y_m"]), frames[-1][0], frames[-1][1])
+        assert out[-1][1].raw[r, c], "the person's cells must not be learnt by the warm-up"
+    finally:
+        pipe.close()
+
+
+def test_warm_up_schedule_and_a_loaded_model_is_no_young_one():
+    d = _detector(warmup_updates=3, warmup_every_frames=2, update_every_frames=40)
+    res = type("R", (), {"valid": np.ones(4, bool),
+                         "descriptors": np.random.default_rng(0).uniform(
+                             0, 1, (4, 8)).astype(np.float32)})()
+    handed = [i + 1 for i in range(100) if d.learn(res)]
+    assert handed == [1, 2, 4, 40, 80]                  # first, two more every 2, then every 40
+    # off (the paper): first, then every 40
+    d = _detector(update_every_frames=40)
+    assert [i + 1 for i in range(100) if d.learn(res)] == [1, 40, 80]
+    # a model restored from the state directory has learnt: no warm-up
+    d = _detector(warmup_updates=3, warmup_every_frames=2, update_every_frames=40)
+    d.import_state(_trained().export_state())
+    assert [i + 1 for i in range(100) if d.learn(res)] == [40, 80]
+
+
 # ---- persistence -----------------------------------------------------------------------------
 def _detector(**kw):
     o = dataclasses.replace(StereoNoveltyConfig(), **kw)

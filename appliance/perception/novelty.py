@@ -585,6 +585,7 @@ class NoveltyDetector:
         self.stabiliser = Stabiliser(o.alpha, o.stabilise)
         self.frames = 0
         self._first_sent = False
+        self._handed = 0                       # updates handed over (or loaded)
         self._log_rho = -math.log10(o.rho)
 
     # ---- per frame -------------------------------------------------------------------------
@@ -636,7 +637,10 @@ class NoveltyDetector:
         stands above the ground (issue #14: never learn a person standing ahead at boot)."""
         self.frames += 1
         first = not self._first_sent
-        if not (first or force or self.frames % self.o.update_every_frames == 0):
+        period = self.o.update_every_frames
+        if self._handed < getattr(self.o, "warmup_updates", 0):
+            period = min(period, self.o.warmup_every_frames)
+        if not (first or force or self.frames % period == 0):
             return False
         keep = result.valid.copy()
         if first and first_exclude is not None:
@@ -647,6 +651,7 @@ class NoveltyDetector:
         if len(samples) == 0:
             return False
         self._first_sent = True
+        self._handed += 1
         if self.updater is not None:
             self.updater.submit(samples)
         else:
@@ -697,6 +702,8 @@ class NoveltyDetector:
         updates = int(state.get("updates", 1))
         self.model.load(x.astype(np.float32), w.astype(np.float64), max(1, updates))
         self._first_sent = True
+        # a model learnt before (the state directory's) is no young one: no warm-up
+        self._handed = max(1, updates, getattr(self.o, "warmup_updates", 0))
 
     def close(self):
         if self.updater is not None:

@@ -47,6 +47,15 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
     rho: float = _f(1.0, lo=1e-30, hi=1e30, doc="novel when density < rho (eq. 3 units)")
     forget: float = _f(0.1, lo=1e-4, hi=0.99, doc="lambda of eqs. 6, 7 (per update)")
     update_every_frames: int = _f(40, lo=1, hi=10000, doc="model update period (paper: 40)")
+    # Off by default (twenty-seventh session, being measured)
+    warmup_updates: int = _f(0, lo=0, hi=1000,
+                             doc="beyond the paper: the model's first this many updates come "
+                                 "every warmup_every_frames frames instead of "
+                                 "update_every_frames (a model of one frame calls the field's "
+                                 "own stubble novel for the 4 s until its second update; a "
+                                 "model loaded from the state directory is no young one); 0 = "
+                                 "off (the paper)")
+    warmup_every_frames: int = _f(2, lo=1, hi=10000, doc="warmup_updates: their period")
     weight_floor: float = _f(0.005, lo=0.0, hi=1.0,
                              doc="samples whose weight decays below this are dropped")
     max_neighbours: int = _f(64, lo=1, hi=4096, doc="neighbours summed per query (<= 3 sigma)")
