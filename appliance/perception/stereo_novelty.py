@@ -47,7 +47,8 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
     rho: float = _f(1.0, lo=1e-30, hi=1e30, doc="novel when density < rho (eq. 3 units)")
     forget: float = _f(0.1, lo=1e-4, hi=0.99, doc="lambda of eqs. 6, 7 (per update)")
     update_every_frames: int = _f(40, lo=1, hi=10000, doc="model update period (paper: 40)")
-    # Off by default (twenty-seventh session, being measured)
+    # Off by default (twenty-seventh session: docs/front-end.md "The field's canopy, and the
+    # boot")
     warmup_updates: int = _f(0, lo=0, hi=1000,
                              doc="beyond the paper: the model's first this many updates come "
                                  "every warmup_every_frames frames instead of "
@@ -247,9 +248,10 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
                                             "the novelty model's update like any obstacle point "
                                             "(false: they are learnt, so low stubble in a novel "
                                             "cell cannot hold that cell novel)")
-    # Off by default (twenty-seventh session, being measured): the camera box's stubble false
-    # stops on training drives were tuft tops 0.5-0.75 m high raised by the depth cue alone
-    # (docs/front-end.md "The field's canopy")
+    # Off by default (twenty-seventh session): the camera box's stubble false stops on training
+    # drives were tuft tops 0.5-0.75 m high raised by the depth cue alone; it removed 8 and 7 of
+    # them (training, acceptance) but lost a head-on dog's stop on the acceptance seeds
+    # (docs/front-end.md "The field's canopy, and the boot")
     canopy_floor: bool = _f(False, doc="with the depth cue: obstacle points that only the depth "
                                        "cue put into matching (neither novelty nor the learned "
                                        "cue) count only above the field's canopy: the "
