@@ -352,6 +352,13 @@ class Drive:
         x, y, _ = self.vehicle.pose()
         out = []
         fx, hw = z.front_x_m, z.half_width_m
+
+        def ahead_of(q):
+            """How far ahead of the front the footprint ``q`` enters the corridor of its frame
+            (inf: never)."""
+            inside = (np.abs(q[:, 1]) <= hw + self.lateral_tol_m) & (q[:, 0] >= -rear)
+            return float((q[inside, 0] - fx).min()) if inside.any() else math.inf
+
         for k, o in enumerate(self.field.world.obstacles):
             if math.hypot(o.x - x, o.y - y) > o.radius + fx + 45.0:
                 continue
@@ -362,15 +369,9 @@ class Drive:
             if curvature_1pm:
                 p = to_path_frame(p, curvature_1pm, fx)
             ay = np.abs(p[:, 1])
-            corridor = (ay <= hw + self.lateral_tol_m) & (p[:, 0] >= -rear)
-            ahead = float((p[corridor, 0] - fx).min()) if corridor.any() else math.inf
-            if p is p_vehicle:
-                ahead_straight = ahead
-            else:                        # the straight corridor's, whatever the box's zones
-                straight = (np.abs(p_vehicle[:, 1]) <= hw + self.lateral_tol_m) & \
-                    (p_vehicle[:, 0] >= -rear)
-                ahead_straight = (float((p_vehicle[straight, 0] - fx).min())
-                                  if straight.any() else math.inf)
+            ahead = ahead_of(p)
+            # the straight corridor's, whatever the box's zones
+            ahead_straight = ahead if p is p_vehicle else ahead_of(p_vehicle)
             dx = np.maximum(0.0, np.maximum(fx - p[:, 0], p[:, 0] - (fx + stop_len_m)))
             dy = np.maximum(0.0, ay - hw)
             deep = (ay <= hw - self.lateral_tol_m) & (p[:, 0] >= fx - 0.0) & \
