@@ -41,7 +41,7 @@ from collections import deque
 
 import numpy as np
 
-from appliance.zones import PathBend, same_bend, to_path_frame
+from appliance.zones import PathBend, bend_of, same_bend, to_path_frame
 
 # default pipelines per scene kind: today's pipelines for the kind's sensors
 DEFAULT_PIPELINES = {"stubble-coverage": ("stereo-novelty",),
@@ -451,7 +451,7 @@ class Drive:
             self.shadow.wait_idle()
         verdict = None if pic is None else pic.verdict
         s_len = verdict.stop_len_m if verdict is not None else self.zones.min_stop_m
-        s_kappa = getattr(verdict, "bend", 0.0)
+        s_kappa = bend_of(pic)
         if abs(s_len - stop_len) > 1e-9 or not same_bend(s_kappa, kappa):
             truth = self.truth(s_len, s_kappa)
         state = out.state
@@ -517,7 +517,7 @@ class Drive:
         state = out.state
         t_s = res.index / self.rate
         stop_len = res.verdict.stop_len_m if res.verdict is not None else self.zones.min_stop_m
-        kappa = getattr(res.verdict, "bend", 0.0)      # what the box laid its zones along
+        kappa = bend_of(res)                           # what the box laid its zones along
         truth = self.truth(stop_len, kappa)
         cells = np.asarray(res.cells_xy, np.float64).reshape(-1, 2)
         x, y, yaw = v.pose()

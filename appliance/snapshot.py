@@ -11,19 +11,12 @@ import numpy as np
 
 from appliance.config import Config
 from appliance.perception.view import pixels_of
-from appliance.zones import stop_length, zone_outline
+from appliance.zones import bend_of, stop_length, zone_outline
 from hal.types import GateState
 
 STATE_BGR = {GateState.STOP: (40, 40, 220), GateState.SLOW: (0, 190, 230),
              GateState.CLEAR: (60, 180, 60)}
 PANEL_H = 420
-
-
-def bend_of(res):
-    """What the box laid its zones along this cycle: an arc (0: straight; [zones]
-    follow_turn) or the planned path (a zones.PathBend; [zones] follow_path)."""
-    v = getattr(res, "verdict", None)
-    return 0.0 if v is None else v.bend
 
 
 def draw_zones(img, px, z, stop_len_m: float, bend=0.0) -> None:

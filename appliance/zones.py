@@ -37,6 +37,13 @@ class ZoneVerdict:
         return self.path if self.path is not None else self.curvature_1pm
 
 
+def bend_of(res) -> "float | PathBend":
+    """What the box laid its zones along in the cycle of ``res`` (anything with a
+    ``verdict``, or None): an arc's curvature (0: straight; [zones] follow_turn) or the
+    planned path (a PathBend; [zones] follow_path)."""
+    return getattr(getattr(res, "verdict", None), "bend", 0.0)
+
+
 def zone_rects(speed_mps: float, z: ZonesConfig) -> tuple[dict, dict]:
     """The stop and slow zones as vehicle-frame rectangles {x_min_m, x_max_m, half_width_m}
     (docs/run-format.md "The box's decisions")."""
