@@ -801,8 +801,12 @@ class StereoNoveltyPipeline(Pipeline):
         if not o.canopy_floor or self._canopy_src is None:
             return None, None
         cpts, cpx, kc = self._canopy_src
-        now = canopy_height(heights_above(ground, cpts, o, mount_z), cpts,
-                            self._other_cue(cpx, kc / float(kd)), o)
+        ch = heights_above(ground, cpts, o, mount_z)
+        # the cue masks are read only for the points the quantile can take (the coarse pass
+        # has tens of thousands; most are soil or out of range)
+        can = np.flatnonzero((ch >= o.canopy_min_m) & (ch <= o.canopy_max_m)
+                             & (cpts[:, 0] > 0) & (cpts[:, 0] <= o.canopy_max_range_m))
+        now = canopy_height(ch[can], cpts[can], self._other_cue(cpx[can], kc / float(kd)), o)
         if now is not None:
             self._canopies.append(now)
         canopy = float(np.median(self._canopies)) if self._canopies else None
