@@ -586,6 +586,7 @@ class NoveltyDetector:
         self.frames = 0
         self._first_sent = False
         self._handed = 0                       # updates handed over (or loaded)
+        self._boot_exclude = None              # the boot check's cells (the first update's)
         self._log_rho = -math.log10(o.rho)
 
     # ---- per frame -------------------------------------------------------------------------
@@ -634,7 +635,9 @@ class NoveltyDetector:
         start-up": an empty model calls everything novel, so stereo noise near the ground
         would otherwise keep those cells out of the model for good) and leaves out only
         ``first_exclude``: what the boot check (full-frame stereo, the learned cue) vouches
-        stands above the ground (issue #14: never learn a person standing ahead at boot)."""
+        stands above the ground (issue #14: never learn a person standing ahead at boot).
+        The warm-up's updates (``warmup_updates``) leave ``first_exclude`` out too: the young
+        model is not to learn at 2-frame intervals what the boot check could not vouch for."""
         self.frames += 1
         first = not self._first_sent
         period = self.o.update_every_frames
@@ -645,8 +648,13 @@ class NoveltyDetector:
         keep = result.valid.copy()
         if first and first_exclude is not None:
             keep &= ~first_exclude
+            self._boot_exclude = first_exclude.copy()
         if exclude is not None and not first:
             keep &= ~exclude
+        if (not first and self._boot_exclude is not None
+                and self._handed < getattr(self.o, "warmup_updates", 0)
+                and self._boot_exclude.shape == keep.shape):
+            keep &= ~self._boot_exclude
         samples = result.descriptors[keep]
         if len(samples) == 0:
             return False
