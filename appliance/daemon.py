@@ -127,6 +127,7 @@ class Daemon:
         self._status_t = 0.0
         self.console = None
         self.memory = None
+        self.model_keeper = None
 
     # -------------------------------------------------------------------------------------
     def start(self) -> None:
@@ -144,6 +145,9 @@ class Daemon:
                 dev.start_acquisition()
         self.pipelines = [make_pipeline(n, self.cfg) for n in self.cfg.perception.pipelines]
         novelty_store.load_into(self.pipelines)     # a bad file: a log line, a fresh start
+        self.model_keeper = novelty_store.ModelKeeper(
+            self.pipelines, novelty_store.save_period_s(self.pipelines))
+        self.model_keeper.start()                   # saves while running (power cuts)
         self.loop = ApplianceLoop(self.cfg, self.clock, self.devices, self.pipelines,
                                   kinds={d.name: d.kind for d in self.cfg.devices})
         self.loop.on_cycle.append(self._notify_cycle)
@@ -275,6 +279,8 @@ class Daemon:
                 p.close()
             except Exception:
                 log.exception("closing pipeline %s", p.name)
+        if self.model_keeper is not None:
+            self.model_keeper.stop()                # no periodic save racing the last one
         novelty_store.save_from(self.pipelines)     # never raises
         if self.recorder is not None:
             self.recorder.close()

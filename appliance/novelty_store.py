@@ -6,7 +6,13 @@ samples and weights with a JSON header (``magic``, ``version``, the detector's f
 descriptor definition and kernel). Reading it never takes the box down: a missing file is a
 fresh start; a corrupt, truncated, foreign (other settings, another program's file) or
 newer-version file is one clear log line and a fresh start. Writing goes to a temporary file
-in the same directory and is renamed over the old one (a crash mid-write leaves the old model).
+in the same directory and is renamed over the old one, and the directory is synced (a crash or
+a power cut mid-write leaves the old model).
+
+When: at shutdown, and every ``model_save_s`` seconds while running (:class:`ModelKeeper`, a
+thread of the daemon's: a vehicle whose power is cut at key-off never shuts the box down, and a
+box that saved only at shutdown would boot every morning with an empty model: its first
+seconds' stubble stops, docs/front-end.md "The field's canopy, and the boot").
 
 Where: ``[perception.stereo-novelty] model_state``: "auto" (default) = the service's state
 directory ($STATE_DIRECTORY, set by systemd's ``StateDirectory=``), file
@@ -21,6 +27,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -52,6 +59,16 @@ def save(path: Path, state: dict) -> None:
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
+    try:                      # the rename itself must survive a power cut
+        fd = os.open(path.parent, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass                  # a file system that cannot sync a directory: the rename stands
+    finally:
+        os.close(fd)
 
 
 def read(path: Path) -> dict | None:
@@ -125,3 +142,50 @@ def save_from(pipelines, env: dict | None = None) -> list[str]:
             continue
         done.append(str(path))
     return done
+
+
+def save_period_s(pipelines, env: dict | None = None) -> float:
+    """The shortest ``model_save_s`` of the pipelines that persist a model here (0: none saves
+    while running: none has a ``model_state`` file, or every period is 0)."""
+    periods = [float(getattr(p.options, "model_save_s", 0.0) or 0.0)
+               for p in _novelty_pipelines(pipelines)
+               if state_path(getattr(p.options, "model_state", "off"), p.name, env) is not None]
+    periods = [t for t in periods if t > 0]
+    return min(periods) if periods else 0.0
+
+
+class ModelKeeper:
+    """Saves the novelty models every ``period_s`` seconds on its own thread (:func:`save_from`:
+    never raises; a failure is a log line and the next period tries again). The model is read
+    from its immutable snapshot (ParzenModel swaps snapshots whole), so the loop and the
+    background update go on while it writes."""
+
+    def __init__(self, pipelines, period_s: float, env: dict | None = None):
+        self.pipelines, self.period_s, self.env = pipelines, float(period_s), env
+        self.saves = 0                  # rounds that wrote at least one model
+        self.last_saved: list[str] = []
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        if self.period_s <= 0 or self._thread is not None:
+            return
+        self._thread = threading.Thread(target=self._run, name="novelty-save", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=10.0)
+            self._thread = None
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.period_s):
+            try:
+                done = save_from(self.pipelines, self.env)
+            except Exception:                    # noqa: BLE001 - never take the box down
+                log.exception("novelty model save")
+                continue
+            if done:
+                self.saves += 1
+                self.last_saved = done

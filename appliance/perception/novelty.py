@@ -360,6 +360,12 @@ class ParzenModel:
         s = self._snap
         return s.x, s.w
 
+    def state(self) -> tuple[np.ndarray, np.ndarray, int]:
+        """Samples, weights and updates of one snapshot (a save while the background update
+        runs must not pair one update's samples with the next one's count)."""
+        s = self._snap
+        return s.x, s.w, s.updates
+
     def memory_bytes(self) -> int:
         s = self._snap
         return int(s.x.nbytes + s.w.nbytes)
@@ -682,12 +688,12 @@ class NoveltyDetector:
 
     def export_state(self) -> dict:
         """The model as plain arrays and numbers (None while it is empty)."""
-        x, w = self.model.samples()
+        x, w, updates = self.model.state()
         if len(w) == 0:
             return None
         return {"version": self.STATE_VERSION, "fingerprint": self.fingerprint(),
                 "x": np.array(x, np.float32), "w": np.array(w, np.float64),
-                "updates": int(self.model.updates)}
+                "updates": int(updates)}
 
     def import_state(self, state: dict) -> None:
         """Take a saved model (from :meth:`export_state`). Raises ValueError naming what does
