@@ -47,9 +47,10 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
     rho: float = _f(1.0, lo=1e-30, hi=1e30, doc="novel when density < rho (eq. 3 units)")
     forget: float = _f(0.1, lo=1e-4, hi=0.99, doc="lambda of eqs. 6, 7 (per update)")
     update_every_frames: int = _f(40, lo=1, hi=10000, doc="model update period (paper: 40)")
-    # Off by default (twenty-seventh session): as a shadow it removed 5 and 15 boot-time false
-    # stops (training, acceptance) and lost nothing, but it has not been driven in closed loop
-    # (docs/front-end.md "The field's canopy, and the boot")
+    # Off by default (twenty-seventh and twenty-eighth sessions): fewer boot-time false stops
+    # in closed loop (training and acceptance), but its updates learn what stands in view at
+    # boot where the frame's points miss it, and keeping the boot check's cells out of them
+    # takes the gain away (docs/front-end.md "The field's canopy, and the boot")
     warmup_updates: int = _f(0, lo=0, hi=1000,
                              doc="beyond the paper: the model's first this many updates come "
                                  "every warmup_every_frames frames instead of "
