@@ -220,6 +220,8 @@ class Daemon:
             doc["console"] = self.console.info()
         if self.memory is not None:
             doc["memory"] = self.memory.status()
+        if self.model_keeper is not None and self.model_keeper.period_s > 0:
+            doc["novelty_model_saves"] = self.model_keeper.status()
         heap = heap_status()
         if heap is not None:
             doc["heap"] = heap

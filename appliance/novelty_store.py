@@ -28,6 +28,7 @@ import json
 import logging
 import os
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -164,6 +165,7 @@ class ModelKeeper:
         self.pipelines, self.period_s, self.env = pipelines, float(period_s), env
         self.saves = 0                  # rounds that wrote at least one model
         self.last_saved: list[str] = []
+        self.last_saved_mono: float | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -187,5 +189,13 @@ class ModelKeeper:
                 log.exception("novelty model save")
                 continue
             if done:
-                self.saves += 1
                 self.last_saved = done
+                self.last_saved_mono = time.monotonic()
+                self.saves += 1                 # last: a reader that sees it sees the rest
+
+    def status(self) -> dict:
+        """For the status document: the period, how many saves, the files, how long ago."""
+        ago = (None if self.last_saved_mono is None
+               else round(time.monotonic() - self.last_saved_mono, 1))
+        return {"every_s": self.period_s, "saves": self.saves, "files": list(self.last_saved),
+                "last_save_s_ago": ago}
