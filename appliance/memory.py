@@ -21,13 +21,11 @@ than glibc (musl) both are absent and the status says so.
 from __future__ import annotations
 
 import ctypes
-import logging
 import os
 import sys
-import threading
 import time
 
-log = logging.getLogger("fieldguard.memory")
+from appliance.periodic import Periodic
 
 
 class _MallInfo2(ctypes.Structure):
@@ -90,30 +88,26 @@ def trim() -> bool | None:
     return bool(_MALLOC_TRIM(0))
 
 
-class MemoryKeeper:
+class MemoryKeeper(Periodic):
     """Trims the heap every ``trim_s`` seconds on its own thread (0: never) and reports the
     memory figures for the status document."""
 
+    name = "memory"
+    logger = "fieldguard.memory"
+
     def __init__(self, trim_s: float = 60.0):
-        self.trim_s = float(trim_s)
+        super().__init__(trim_s)
         self.trims = 0
         self.trim_ms_last = None
         self.trim_ms_max = 0.0
         self.released_mb = 0.0          # RSS before a trim minus after, summed
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
 
-    def start(self) -> None:
-        if self.trim_s <= 0 or _MALLOC_TRIM is None or self._thread is not None:
-            return
-        self._thread = threading.Thread(target=self._run, name="memory", daemon=True)
-        self._thread.start()
+    @property
+    def trim_s(self) -> float:
+        return self.period_s
 
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
-            self._thread = None
+    def enabled(self) -> bool:
+        return self.period_s > 0 and _MALLOC_TRIM is not None
 
     def trim_now(self) -> None:
         before = resident_mb()
@@ -127,12 +121,8 @@ class MemoryKeeper:
         if before is not None and after is not None:
             self.released_mb = round(self.released_mb + max(0.0, before - after), 3)
 
-    def _run(self) -> None:
-        while not self._stop.wait(self.trim_s):
-            try:
-                self.trim_now()
-            except Exception:                   # a measuring aid: never takes the box down
-                log.exception("malloc_trim")
+    def tick(self) -> None:
+        self.trim_now()
 
     def status(self) -> dict:
         doc = {"malloc": malloc_stats(), "py_blocks": sys.getallocatedblocks(),

@@ -27,11 +27,12 @@ from __future__ import annotations
 import json
 import logging
 import os
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
+
+from appliance.periodic import Periodic
 
 log = logging.getLogger("fieldguard.novelty")
 
@@ -155,43 +156,28 @@ def save_period_s(pipelines, env: dict | None = None) -> float:
     return min(periods) if periods else 0.0
 
 
-class ModelKeeper:
+class ModelKeeper(Periodic):
     """Saves the novelty models every ``period_s`` seconds on its own thread (:func:`save_from`:
     never raises; a failure is a log line and the next period tries again). The model is read
     from its immutable snapshot (ParzenModel swaps snapshots whole), so the loop and the
     background update go on while it writes."""
 
+    name = "novelty-save"
+    logger = "fieldguard.novelty"
+
     def __init__(self, pipelines, period_s: float, env: dict | None = None):
-        self.pipelines, self.period_s, self.env = pipelines, float(period_s), env
+        super().__init__(period_s)
+        self.pipelines, self.env = pipelines, env
         self.saves = 0                  # rounds that wrote at least one model
         self.last_saved: list[str] = []
         self.last_saved_mono: float | None = None
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
 
-    def start(self) -> None:
-        if self.period_s <= 0 or self._thread is not None:
-            return
-        self._thread = threading.Thread(target=self._run, name="novelty-save", daemon=True)
-        self._thread.start()
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=10.0)
-            self._thread = None
-
-    def _run(self) -> None:
-        while not self._stop.wait(self.period_s):
-            try:
-                done = save_from(self.pipelines, self.env)
-            except Exception:                    # noqa: BLE001 - never take the box down
-                log.exception("novelty model save")
-                continue
-            if done:
-                self.last_saved = done
-                self.last_saved_mono = time.monotonic()
-                self.saves += 1                 # last: a reader that sees it sees the rest
+    def tick(self) -> None:
+        done = save_from(self.pipelines, self.env)
+        if done:
+            self.last_saved = done
+            self.last_saved_mono = time.monotonic()
+            self.saves += 1                 # last: a reader that sees it sees the rest
 
     def status(self) -> dict:
         """For the status document: the period, how many saves, the files, how long ago."""
