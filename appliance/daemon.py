@@ -276,13 +276,13 @@ class Daemon:
         if self.loop is not None:
             self.loop.send_stop_everywhere("fieldguard shutting down")
         self.notifier.stopping("STOP: fieldguard shutting down")
+        if self.model_keeper is not None:
+            self.model_keeper.stop()                # no periodic save racing the last one
         for p in self.pipelines:
             try:
                 p.close()
             except Exception:
                 log.exception("closing pipeline %s", p.name)
-        if self.model_keeper is not None:
-            self.model_keeper.stop()                # no periodic save racing the last one
         novelty_store.save_from(self.pipelines)     # never raises
         if self.recorder is not None:
             self.recorder.close()

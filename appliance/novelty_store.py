@@ -11,8 +11,9 @@ a power cut mid-write leaves the old model).
 
 When: at shutdown, and every ``model_save_s`` seconds while running (:class:`ModelKeeper`, a
 thread of the daemon's: a vehicle whose power is cut at key-off never shuts the box down, and a
-box that saved only at shutdown would boot every morning with an empty model: its first
-seconds' stubble stops, docs/front-end.md "The field's canopy, and the boot").
+box that saved only at shutdown booted with an empty model, or that of its last clean shutdown:
+an empty one costs the first seconds' stubble stops, docs/front-end.md "The field's canopy, and
+the boot").
 
 Where: ``[perception.stereo-novelty] model_state``: "auto" (default) = the service's state
 directory ($STATE_DIRECTORY, set by systemd's ``StateDirectory=``), file
