@@ -6,7 +6,6 @@ import logging
 import threading
 
 
-
 class Periodic:
     """Calls :meth:`tick` every ``period_s`` seconds on a daemon thread named ``name`` from
     :meth:`start` until :meth:`stop` (0 or less, or :meth:`enabled` False: never). An exception

@@ -32,12 +32,11 @@ def seeds_of(text: str) -> list[int]:
 
 
 def one(kind: str, seed: int, minutes: float, extra: dict | None, model: Path) -> dict:
-    from appliance.campaign import make_spec
-    from appliance.campaign_drive import Drive, deep_merge
+    from appliance.campaign import make_spec, run_drive
+    from appliance.campaign_drive import deep_merge
     data = deep_merge(extra or {}, {"perception": {"stereo-novelty": {
         "model_state": str(model), "model_save_s": 0.0}}})
-    spec = make_spec(kind, seed, minutes, 0.5, data)
-    r = Drive(kind, seed, minutes, config_data=spec["config"], stereo_scale=0.5).run()["result"]
+    r = run_drive(make_spec(kind, seed, minutes, 0.5, data))["result"]
     return {k: r.get(k, 0) for k in KEYS}
 
 

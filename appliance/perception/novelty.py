@@ -647,7 +647,8 @@ class NoveltyDetector:
         self.frames += 1
         first = not self._first_sent
         period = self.o.update_every_frames
-        if self._handed < getattr(self.o, "warmup_updates", 0):
+        warming = self._handed < getattr(self.o, "warmup_updates", 0)
+        if warming:
             period = min(period, self.o.warmup_every_frames)
         if not (first or force or self.frames % period == 0):
             return False
@@ -657,8 +658,7 @@ class NoveltyDetector:
             self._boot_exclude = first_exclude.copy()
         if exclude is not None and not first:
             keep &= ~exclude
-        if (not first and self._boot_exclude is not None
-                and self._handed < getattr(self.o, "warmup_updates", 0)
+        if (warming and not first and self._boot_exclude is not None
                 and self._boot_exclude.shape == keep.shape):
             keep &= ~self._boot_exclude
         samples = result.descriptors[keep]

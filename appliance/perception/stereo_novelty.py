@@ -185,8 +185,8 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
     model_save_s: float = _f(300.0, lo=0.0, hi=86400.0,
                              doc="while running, the model is saved to model_state every this "
                                  "many seconds (a vehicle whose power is cut at key-off never "
-                                 "shuts the box down: it would boot every time with an empty "
-                                 "model); 0 = only at shutdown")
+                                 "shuts the box down: it would boot with an empty model, or "
+                                 "that of its last clean shutdown); 0 = only at shutdown")
     boot_min_points: int = _f(30, lo=1, hi=100000,
                               doc="boot_guard: points a candidate needs to be kept out of the "
                                   "first update (fewer: stereo noise, learnt as field)")
