@@ -36,6 +36,8 @@ def test_acceptance_seeds_and_bad_seeds_are_refused():
     assert p.returncode == 2 and "acceptance" in p.stderr and not p.stdout
     p = _run("stubble-coverage", "one")
     assert p.returncode == 2 and "seeds must look like" in p.stderr
+    p = _run("stubble-coverage", "1", "--stereo-scale", "0")
+    assert p.returncode == 2 and "--stereo-scale must be in [0.1, 1.0], got 0.0" in p.stderr
 
 
 def test_confirm_says_what_the_camera_leaves_unconfirmed(tmp_path):
@@ -44,7 +46,7 @@ def test_confirm_says_what_the_camera_leaves_unconfirmed(tmp_path):
     cfg = tmp_path / "sl.toml"
     cfg.write_text('[perception]\npipelines = ["stereo-novelty", "laser"]\n')
     p = _run("stubble-coverage", "1", "--minutes", "0.3", "--config", str(cfg),
-             "--confirm", "novelty,points", "--json")
+             "--confirm", "novelty,points", "--json", "--stereo-scale", "0.25")
     assert p.returncode == 0, p.stderr[-2000:]
     c = json.loads(p.stdout)["confirm"]
     assert c["by"] == ["novelty", "points"]

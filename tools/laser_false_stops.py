@@ -70,7 +70,14 @@ def main(argv=None) -> int:
     ap.add_argument("--config", default=None, help="TOML merged over the drive's config")
     ap.add_argument("--picture", default=None, metavar="DIR",
                     help="with a camera pipeline: one PNG per false stop into DIR")
+    ap.add_argument("--stereo-scale", type=float, default=0.5,
+                    help="the stereo pair's size against 1280x1024, as the campaign's "
+                         "(0.1-1.0; default 0.5)")
     a = ap.parse_args(argv)
+    if not 0.1 <= a.stereo_scale <= 1.0:
+        print(f"laser_false_stops: --stereo-scale must be in [0.1, 1.0], got {a.stereo_scale}",
+              file=sys.stderr)
+        return 2
     if a.seed >= 1000:
         print("laser_false_stops: seeds >= 1000 are the acceptance set; look for causes on "
               "training seeds", file=sys.stderr)
@@ -87,8 +94,8 @@ def main(argv=None) -> int:
     except FieldguardError as exc:
         print(f"laser_false_stops: {exc}", file=sys.stderr)
         return 2
-    spec = make_spec(a.kind, a.seed, a.minutes, 0.5, extra)
-    d = Drive(a.kind, a.seed, a.minutes, config_data=spec["config"], stereo_scale=0.5)
+    spec = make_spec(a.kind, a.seed, a.minutes, a.stereo_scale, extra)
+    d = Drive(a.kind, a.seed, a.minutes, config_data=spec["config"], stereo_scale=a.stereo_scale)
     d.build()
     from appliance.decision import camera_confirms, camera_views
     from appliance.perception.laser import plane_points

@@ -101,13 +101,13 @@ def confirmed(res, loc: np.ndarray, mount, names, radius_m: float) -> np.ndarray
 
 
 def probe_drive(kind: str, seed: int, minutes: float, extra: dict,
-                confirm_by: tuple = (), radius: float = 0.3) -> dict:
+                confirm_by: tuple = (), radius: float = 0.3, stereo_scale: float = 0.5) -> dict:
     from appliance.campaign import make_spec
     from appliance.campaign_drive import Drive
     from appliance.perception.laser import segment_widths
     from drivers.sim.world import MAT_OBSTACLE, MAT_STUBBLE
-    spec = make_spec(kind, seed, minutes, 0.5, extra)
-    d = Drive(kind, seed, minutes, config_data=spec["config"], stereo_scale=0.5)
+    spec = make_spec(kind, seed, minutes, stereo_scale, extra)
+    d = Drive(kind, seed, minutes, config_data=spec["config"], stereo_scale=stereo_scale)
     d.build()
     z, f = d.zones, d.field
     world = f.scene.world
@@ -278,7 +278,14 @@ def main(argv=None) -> int:
                     help="also what [grid] laser_confirm_by = these (comma-separated, e.g. "
                          "novelty,learned,points) would leave unconfirmed (the config must "
                          "run a camera pipeline beside the laser)")
+    ap.add_argument("--stereo-scale", type=float, default=0.5,
+                    help="the stereo pair's size against 1280x1024, as the campaign's "
+                         "(0.1-1.0; default 0.5)")
     a = ap.parse_args(argv)
+    if not 0.1 <= a.stereo_scale <= 1.0:
+        print(f"laser_ground_probe: --stereo-scale must be in [0.1, 1.0], got {a.stereo_scale}",
+              file=sys.stderr)
+        return 2
     from appliance.perception.view import CONFIRM_NAMES
     confirm_by = tuple(n for n in a.confirm.split(",") if n)
     bad = [n for n in confirm_by if n not in CONFIRM_NAMES]
@@ -291,7 +298,8 @@ def main(argv=None) -> int:
         return 2
     seeds, extra = setup
     drives = drive_each("laser_ground_probe", seeds,
-                        lambda s: probe_drive(a.kind, s, a.minutes, extra, confirm_by))
+                        lambda s: probe_drive(a.kind, s, a.minutes, extra, confirm_by,
+                                              stereo_scale=a.stereo_scale))
     summary = summarise(drives, a.estimate)
     if confirm_by:
         summary["confirm"] = {"by": list(confirm_by), **summarise_confirm(drives)}
