@@ -248,6 +248,13 @@ class _Cam:
             stream = cam.create_stream(None, None)
             if stream is None:
                 raise DeviceOperationError(f"{self.side} camera {self.ident}: no stream")
+            if cam.is_gv_device():
+                # a receive buffer of a whole frame (Aravis's AUTO; at most net.core.rmem_max,
+                # docs/hardware.md): left as it was (FIXED, size 0) the socket kept the
+                # kernel's rmem_default (208 kB here), less than one 640x480 Bayer frame
+                # (307 kB), and a frame's burst overflowed it whenever the stream thread was
+                # late: thousands of missing packets on a busy host
+                stream.set_property("socket-buffer", A.GvStreamSocketBuffer.AUTO)
             payload = cam.get_payload()
             for _ in range(buffers):
                 stream.push_buffer(A.Buffer.new_allocate(payload))

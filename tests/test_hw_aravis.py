@@ -184,6 +184,7 @@ def test_fake_gige_pair_through_the_daemon(netns, calibration, tmp_path):
     # cannot resend, so frames are dropped: all of it shows in health
     assert res["resent_packets"] > 0 and res["counters"]["dropped_frames"] > 0
     assert res["selftest"][0] and "pairs" in res["selftest"][1]
+    assert res["socket_buffer"] == ["auto", "auto"], res
     # camera pulled out: silent; stale 60 ms after its next pair was due (timeout_s 0.16 s = one
     # 10 Hz period + 60 ms), STOP within two cycles of that moment (and so within three of the
     # kill, which can come up to a period before the missing pair was due)
@@ -286,6 +287,9 @@ def _child(cal_path: str) -> int:
         res.update(pairs=c.get("pairs", 0), unmatched=c.get("unmatched", 0),
                    resent_packets=c.get("resent_packets", 0) + c.get("missing_packets", 0),
                    selftest=list(dev.selftest()))
+        # each stream asked the kernel for a frame's worth of receive buffer (Aravis's AUTO)
+        res["socket_buffer"] = [c.stream.get_property("socket-buffer").value_nick
+                                for c in dev.cams if c.stream is not None]
         res["clear_before_kill"] = wait_for(lambda: rig.state == "CLEAR", 5.0)
         if not res["clear_before_kill"]:                # why not: what the daemon said
             res["states_before_kill"] = sorted({(c[1], " ".join(c[2])[:160])
