@@ -20,15 +20,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from appliance.campaign import parse_seeds as seeds_of  # noqa: E402  (the campaign's own)
+
 KEYS = ("false_stops", "false_stops_boot", "true_stops", "missed_stops", "collisions")
-
-
-def seeds_of(text: str) -> list[int]:
-    out = []
-    for part in text.split(","):
-        a, _, b = part.partition("-")
-        out += list(range(int(a), int(b or a) + 1))
-    return out
 
 
 def one(kind: str, seed: int, minutes: float, extra: dict | None, model: Path) -> dict:
@@ -49,13 +43,13 @@ def main(argv=None) -> int:
     ap.add_argument("--out", required=True)
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
+    from appliance.campaign import CampaignError, load_extra_config, make_spec
     try:
         seeds = seeds_of(a.seeds)
-    except ValueError:
-        print(f"boot_with_model: error: --seeds wants N, N-M or lists of them, not {a.seeds!r}",
+    except CampaignError as exc:
+        print(f"boot_with_model: error: --seeds wants N, N-M or lists of them ({exc})",
               file=sys.stderr)
         return 2
-    from appliance.campaign import load_extra_config, make_spec
     extra = load_extra_config(a.config) if a.config else None
     kinds = [k for k in a.scene.split(",") if k]
     try:
