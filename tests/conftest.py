@@ -35,18 +35,49 @@ def _restore_root_logging():
     root.setLevel(level)
 
 
-# -- the soak beside the simulated-time tests ---------------------------------------------------
-# The suite's soak (tests/test_soak.py) is ~95 s of wall clock in which the box's own processes
-# use half a core. In a whole run it starts at the beginning and these modules go first: they
-# run in simulated time (lock-step daemons, pace 0; CLI tools; no wall-clock figure asserted),
-# so sharing the machine with the soak changes nothing they check, and the soak runs at
-# nice -10 (tools/soak.py). The soak test then collects the result. Every other module (links,
-# devices, the console, services: wall-clock deadlines) runs after it, alone as before.
-SOAK_TEST = "tests/test_soak.py::test_short_soak_no_false_clear_stop_within_two_cycles_no_fd_growth"
-SOAK_BESIDE = ("test_low_obstacles.py", "test_rgbd_sim.py", "test_eval_out.py",
-               "test_sim_scenes.py", "test_rgbd.py", "test_laser_ground_probe.py",
-               "test_laser_false_stops.py", "test_laser_sim_eval.py", "test_rgbd_colour_check.py",
-               "test_longrun.py", "test_campaign_compare.py", "test_cue.py", "test_stereo.py")
+# -- the simulated-time modules: the soak beside them, and both cores for them ---------------
+# These modules run in simulated time (lock-step daemons, pace 0; CLI tools; an install into
+# a directory; no wall-clock figure asserted, no status socket, no Ray), so sharing the
+# machine changes nothing they check. Every other module (links, devices, the console,
+# services, Ray, the benchmarks: wall-clock deadlines) runs alone, one test at a time; a new
+# module is one of those until it is listed here. Listed slowest first (`--durations=0`,
+# 2026-12-06): the order in which they are handed out.
+#  - `./tools/test.sh` with no arguments (the whole suite, what CI runs) runs them first, as
+#    `--phase simulated` on pytest-xdist's workers (one per core and one for the soak's test,
+#    which waits; a module stays on one worker: its fixtures are computed once), the soak a
+#    test among them; then the rest as `--phase wall-clock`, alone.
+#  - A plain `pytest` (no phase) runs them first too, in one process, with the soak in the
+#    background: tools/soak.py's ~95 s of wall clock, in which the box's own processes use
+#    half a core at nice -10, overlap theirs; the soak test then collects the result.
+SIMULATED = ("test_campaign_shadow.py", "test_laser_false_stops.py", "test_cue.py",
+             "test_campaign_compare.py", "test_laser_ground_probe.py", "test_fuzz_short.py",
+             "test_eval_out.py", "test_rgbd_sim.py", "test_low_obstacles.py", "test_deploy.py",
+             "test_canopy.py", "test_why_false_stops.py", "test_sim_scenes.py", "test_sim_loop.py",
+             "test_rgbd.py", "test_tilted_laser_probe.py", "test_why_missed.py",
+             "test_longrun.py", "test_laser_sim_eval.py", "test_rgbd_colour_check.py",
+             "test_sim_render.py", "test_sim.py", "test_stereo.py", "test_properties.py",
+             "test_boot_safe.py", "test_decision.py")
+SOAK_MODULE = "test_soak.py"
+SOAK_TEST = (f"tests/{SOAK_MODULE}::"
+             "test_short_soak_no_false_clear_stop_within_two_cycles_no_fd_growth")
+PHASES = ("simulated", "wall-clock")
+
+
+def pytest_addoption(parser):
+    parser.addoption("--phase", choices=PHASES, default=None,
+                     help="only the simulated-time modules (tests/conftest.py SIMULATED, and "
+                          "the soak), or only the others; tools/test.sh runs both")
+
+
+def pytest_ignore_collect(collection_path, config):
+    phase = config.getoption("--phase", None)
+    name = collection_path.name
+    if phase is None or not (name.startswith("test_") and name.endswith(".py")):
+        return None
+    simulated = name in SIMULATED or name == SOAK_MODULE
+    return True if simulated != (phase == "simulated") else None
+
+
 _background_soak: list = []
 
 
@@ -61,8 +92,15 @@ def background_soak():
 def pytest_collection_modifyitems(session, config, items):
     if config.option.collectonly:
         return
+    import os
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        # on xdist's workers (each collects the same list; the controller hands out modules in
+        # its order): the soak first, run by its test on one worker, then the slowest first
+        rank = {n: k for k, n in enumerate((SOAK_MODULE, *SIMULATED))}
+        items.sort(key=lambda i: rank.get(Path(str(i.fspath)).name, len(rank)))
+        return
     soak = [i for i in items if i.nodeid == SOAK_TEST]
-    beside = [i for i in items if Path(str(i.fspath)).name in SOAK_BESIDE]
+    beside = [i for i in items if Path(str(i.fspath)).name in SIMULATED]
     if not soak or not beside:
         return
     from tests.test_soak import soak_missing, start_soak

@@ -133,10 +133,12 @@ def test_stop_latency_counts_a_can_frame_in_the_cycle_that_sent_it():
 
 
 def test_the_modules_run_beside_the_soak_exist():
-    """tests/conftest.py runs these (simulated time only) while the soak runs: a renamed one
-    would silently run after it, and the suite would grow by its time."""
-    from tests.conftest import SOAK_BESIDE, SOAK_TEST
-    missing = [m for m in SOAK_BESIDE if not (ROOT / "tests" / m).is_file()]
+    """tests/conftest.py runs these (simulated time only) while the soak runs, on every core:
+    a renamed one would silently run alone after them, and the suite would grow by its time."""
+    from tests.conftest import SIMULATED, SOAK_MODULE, SOAK_TEST
+    missing = [m for m in (*SIMULATED, SOAK_MODULE) if not (ROOT / "tests" / m).is_file()]
     assert not missing, missing
+    assert len(set(SIMULATED)) == len(SIMULATED)
+    assert SOAK_TEST.startswith(f"tests/{SOAK_MODULE}::")
     path, name = SOAK_TEST.split("::")
     assert f"def {name}(" in (ROOT / path).read_text()
