@@ -28,6 +28,41 @@ def test_refusals_are_messages(tmp_path):
     p = _run("--scene", "stubble-coverage", "--seeds", "1", "--config", str(cfg),
              "--out", str(tmp_path))
     assert p.returncode == 2 and "must run stereo-novelty" in p.stderr
+    p = _run("--scene", "stubble-coverage", "--seeds", "1", "--cross", "--out", str(tmp_path))
+    assert p.returncode == 2 and "--cross wants two scenes" in p.stderr
     p = _run("--scene", "nosuch", "--seeds", "1", "--out", str(tmp_path))
     assert p.returncode == 2 and "unknown scene 'nosuch'" in p.stderr
     assert "Traceback" not in p.stderr
+
+
+def test_cross_boots_each_scene_with_the_other_scenes_model(tmp_path, monkeypatch, capsys):
+    """--cross: both scenes' runs from empty for a seed come first; then each scene's second
+    run loads a copy of the model the other scene's first run saved (the drives themselves are
+    the campaign's, tested there: here who loads what)."""
+    calls = []
+
+    def fake_one(kind, seed, minutes, extra, model):
+        loaded = model.read_text() if model.exists() else None
+        calls.append((kind, seed, model.name, loaded))
+        model.write_text(f"model of {kind} {seed}")       # saved at the end, as the drive does
+        return {k: 0 for k in bwm.KEYS}
+    monkeypatch.setattr(bwm, "one", fake_one)
+    rc = bwm.main(["--scene", "stubble-coverage,stubble-coverage-night", "--seeds", "3,4",
+                   "--cross", "--config", str(_config(tmp_path)), "--out", str(tmp_path / "o")])
+    assert rc == 0, capsys.readouterr().err
+    day, night = "stubble-coverage", "stubble-coverage-night"
+    assert calls == [
+        (day, 3, f"{day}-3.npz", None), (night, 3, f"{night}-3.npz", None),
+        (day, 3, f"{day}-3-with-{night}.npz", f"model of {night} 3"),
+        (night, 3, f"{night}-3-with-{day}.npz", f"model of {day} 3"),
+        (day, 4, f"{day}-4.npz", None), (night, 4, f"{night}-4.npz", None),
+        (day, 4, f"{day}-4-with-{night}.npz", f"model of {night} 4"),
+        (night, 4, f"{night}-4-with-{day}.npz", f"model of {day} 4")]
+    out = capsys.readouterr().out
+    assert f"{day} 3" in out and out.count(night) >= 2
+
+
+def _config(tmp_path):
+    cfg = tmp_path / "sl.toml"
+    cfg.write_text('[perception]\npipelines = ["stereo-novelty", "laser"]\n')
+    return cfg

@@ -10,6 +10,13 @@ and in total the false stops of each run, those in the first 10 s (``BOOT_S``) a
 A proxy for the morning boot: the second run boots where the first began, with the model the
 first had at its end (one minute on, the same light), not with yesterday's. Training seeds only
 when a rule is to be judged on it later.
+
+    python tools/boot_with_model.py --scene stubble-coverage,stubble-coverage-night \
+        --seeds 79-84 --cross --out DIR
+
+``--cross`` (two scenes): the second run of each scene loads the model the *other* scene's
+first run saved, seed for seed: a box that saved its model at night and boots by day, and the
+other way round (the saved model does not say what light it was learnt under).
 """
 from __future__ import annotations
 
@@ -41,6 +48,8 @@ def main(argv=None) -> int:
     ap.add_argument("--minutes", type=float, default=1.0)
     ap.add_argument("--config", default=None)
     ap.add_argument("--out", required=True)
+    ap.add_argument("--cross", action="store_true",
+                    help="two scenes: each boots with the other's model (the same seed)")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
     from appliance.campaign import CampaignError, load_extra_config, make_spec
@@ -52,6 +61,10 @@ def main(argv=None) -> int:
         return 2
     extra = load_extra_config(a.config) if a.config else None
     kinds = [k for k in a.scene.split(",") if k]
+    if a.cross and len(kinds) != 2:
+        print("boot_with_model: error: --cross wants two scenes (--scene A,B): each boots with "
+              "the other's model", file=sys.stderr)
+        return 2
     try:
         pipes = [p for k in kinds for p in make_spec(k, seeds[0], a.minutes, 0.5, extra)
                  ["config"]["perception"]["pipelines"]]
@@ -67,30 +80,47 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     n, i = len(kinds) * len(seeds), 0
-    for kind in kinds:
-        for seed in seeds:
-            i += 1
-            model = out / f"{kind}-{seed}.npz"
-            model.unlink(missing_ok=True)
-            print(f"[{i}/{n}] {kind} {seed}: from empty...", file=sys.stderr, flush=True)
-            empty = one(kind, seed, a.minutes, extra, model)
-            if not model.exists():
-                print(f"boot_with_model: error: {kind} {seed}: no model was saved (does the "
+    order = [(seed, kind) for seed in seeds for kind in kinds] if a.cross else \
+        [(seed, kind) for kind in kinds for seed in seeds]
+    for seed, kind in order:
+        i += 1
+        # the runs from empty: this scene's; with --cross both scenes' of this seed, before
+        # the first of them boots with the other's model
+        firsts = [] if a.cross and kind == kinds[1] else kinds if a.cross else [kind]
+        for k in firsts:
+            m = out / f"{k}-{seed}.npz"
+            m.unlink(missing_ok=True)
+            print(f"[{i}/{n}] {k} {seed}: from empty...", file=sys.stderr, flush=True)
+            first = one(k, seed, a.minutes, extra, m)
+            if not m.exists():
+                print(f"boot_with_model: error: {k} {seed}: no model was saved (does the "
                       "config run stereo-novelty?)", file=sys.stderr)
                 return 1
-            print(f"[{i}/{n}] {kind} {seed}: with its model...", file=sys.stderr, flush=True)
-            loaded = one(kind, seed, a.minutes, extra, model)
-            rows.append({"kind": kind, "seed": seed, "empty": empty, "loaded": loaded})
-            (out / "rows.json").write_text(json.dumps(rows, indent=1))
+            rows.append({"kind": k, "seed": seed, "empty": first})
+        row = next(r for r in rows if r["kind"] == kind and r["seed"] == seed)
+        source = kind
+        if a.cross:
+            source = kinds[1] if kind == kinds[0] else kinds[0]
+            # a copy: the run saves its own model at its end, over the file it loaded
+            loaded_file = out / f"{kind}-{seed}-with-{source}.npz"
+            loaded_file.write_bytes((out / f"{source}-{seed}.npz").read_bytes())
+        else:
+            loaded_file = out / f"{kind}-{seed}.npz"
+        print(f"[{i}/{n}] {kind} {seed}: with the model of {source}...", file=sys.stderr,
+              flush=True)
+        row["loaded"] = one(kind, seed, a.minutes, extra, loaded_file)
+        row["model_of"] = source
+        (out / "rows.json").write_text(json.dumps(rows, indent=1))
+    rows = [r for r in rows if "loaded" in r]
     tot = {w: {k: sum(r[w][k] for r in rows) for k in KEYS} for w in ("empty", "loaded")}
     if a.json:
         print(json.dumps({"rows": rows, "total": tot}))
         return 0
-    print(f"{'drive':32s} {'empty: false (boot)':>20s} {'loaded: false (boot)':>21s}")
+    print(f"{'drive':32s} {'empty: false (boot)':>20s} {'loaded: false (boot)':>21s}  model of")
     for r in rows:
         e, lo = r["empty"], r["loaded"]
         print(f"{r['kind'] + ' ' + str(r['seed']):32s} {e['false_stops']:>12d} ({e['false_stops_boot']})"
-              f" {lo['false_stops']:>14d} ({lo['false_stops_boot']})")
+              f" {lo['false_stops']:>14d} ({lo['false_stops_boot']})  {r['model_of']}")
     for w in ("empty", "loaded"):
         t = tot[w]
         print(f"{w}: false stops {t['false_stops']} ({t['false_stops_boot']} in the first 10 s), "
