@@ -55,6 +55,8 @@ def save(path: Path, state: dict) -> None:
     """Write ``state`` (NoveltyDetector.export_state()) atomically."""
     meta = {"magic": MAGIC, "version": state["version"], "fingerprint": state["fingerprint"],
             "updates": int(state["updates"])}
+    if state.get("light") is not None:          # the frames' light it was learnt under
+        meta["light"] = state["light"]
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "wb") as f:
@@ -88,7 +90,7 @@ def read(path: Path) -> dict | None:
                 raise ValueError("not a fieldguard novelty model")
             return {"version": meta.get("version"), "fingerprint": meta.get("fingerprint"),
                     "updates": meta.get("updates", 1), "x": np.array(z["x"]),
-                    "w": np.array(z["w"])}
+                    "w": np.array(z["w"]), "light": meta.get("light")}
     except Exception as exc:                 # noqa: BLE001 - any bad file is a fresh start
         log.warning("novelty model %s unreadable (%s): starting with an empty model", path,
                     exc)
@@ -121,7 +123,8 @@ def load_into(pipelines, env: dict | None = None) -> list[str]:
             log.warning("novelty model %s not used (%s): starting with an empty model", path,
                         exc)
             continue
-        log.info("novelty model %s loaded: %d samples", path, p.novelty.model.size)
+        log.info("novelty model %s loaded: %d samples, learnt under %s light", path,
+                 p.novelty.model.size, state.get("light") or "unrecorded")
         done.append(str(path))
     return done
 

@@ -284,3 +284,97 @@ def test_near_search_ranges_a_person_standing_in_the_stop_zone():
 
     assert near_points() == 0                               # off (default): ends at 3 m
     assert near_points(near_min_depth_m=1.6) >= 10
+
+
+# ---- the light a saved model was learnt under (thirtieth session) ----------------------------
+def _fake_result(seed=0, n=6):
+    return type("R", (), {"valid": np.ones(n, bool),
+                          "descriptors": np.random.default_rng(seed).uniform(
+                              0, 1, (n, 8)).astype(np.float32)})()
+
+
+def test_a_saved_model_says_the_light_most_of_its_newest_updates_were_learnt_under(tmp_path):
+    d = _detector(update_every_frames=1)
+    assert d.light is None and d.export_state() is None
+    for i in range(18):
+        d.learn(_fake_result(i), light="night-strobe")
+    for i in range(2):                          # the strobe's unlit probe frames at night
+        d.learn(_fake_result(100 + i), light="day")
+    assert d.light == "night-strobe"
+    path = tmp_path / "m.npz"
+    novelty_store.save(path, d.export_state())
+    state = novelty_store.read(path)
+    assert state["light"] == "night-strobe"
+    e = _detector(update_every_frames=1)
+    e.import_state(state)
+    assert e.loaded_light == "night-strobe" and e.light == "night-strobe"
+    # a file saved before the light was recorded loads as before, its light unknown
+    old = dict(state)
+    del old["light"]
+    f = _detector()
+    f.import_state(old)
+    assert f.loaded_light is None and f.light is None and f.model.size == e.model.size
+    with pytest.raises(ValueError, match="light"):
+        _detector().import_state({**state, "light": 3})
+
+
+def test_a_day_model_is_set_aside_at_a_strobe_lit_boot_and_only_then():
+    d = _detector(update_every_frames=1)
+    for i in range(5):
+        d.learn(_fake_result(i), light="day")
+    day = d.export_state()
+    night = {**day, "light": "night-strobe"}
+
+    def loaded(state):
+        e = _detector(update_every_frames=1)
+        e.import_state(state)
+        return e
+    e = loaded(day)
+    assert not e.set_aside_other_light("day")            # by day: kept
+    assert e.model.size == d.model.size and e.first_sent
+    assert e.set_aside_other_light("night-strobe")       # at night: set aside
+    assert e.model.empty and not e.first_sent and e.light is None
+    assert not e.set_aside_other_light("night-strobe")   # once
+    # a night model by day (and a night boot's unlit first frames): kept
+    e = loaded(night)
+    assert not e.set_aside_other_light("day") and e.model.size == d.model.size
+    # a model of unrecorded light: kept
+    e = loaded({k: v for k, v in day.items() if k != "light"})
+    assert not e.set_aside_other_light("night-strobe") and e.first_sent
+    # past the boot (30 frames after the load): a strobe switched on at dusk keeps the model
+    e = loaded(day)
+    for i in range(31):
+        e.learn(_fake_result(i), light="day")
+    assert not e.set_aside_other_light("night-strobe") and e.first_sent
+
+
+def test_a_pipeline_booting_at_night_with_a_day_model_learns_afresh_with_the_boot_check(
+        boot_frames, caplog):
+    """The pipeline, on the person-at-boot frames: a day model loaded, the next frame lit by
+    the strobe (relabelled): the model is set aside with a log line and the boot check runs on
+    that frame, so the person ahead is held and kept out of the first update."""
+    pipe, _ = _run(boot_frames[:1], boot_guard=True, pad_left=True)
+    state = pipe.novelty.export_state()
+    pipe.close()
+    assert state["light"] == "day"
+    st, veh, truth = boot_frames[1]
+    for light, set_aside in (("day", False), ("night-strobe", True)):
+        o = dataclasses.replace(StereoNoveltyConfig(), model_state="off", boot_guard=True,
+                                pad_left=True)
+        pipe = StereoNoveltyPipeline(o, background=False)
+        try:
+            pipe.novelty.import_state(state)
+            frame = dataclasses.replace(st, illumination=light)
+            caplog.clear()
+            with caplog.at_level(logging.WARNING):
+                det = pipe.process(SensorInputs(stamp_ns=frame.stamp_ns, stereo=frame,
+                                                vehicle=veh))
+            said = "learnt by day and the strobe lights these frames" in caplog.text
+            assert said == set_aside, caplog.text
+            assert (det.debug["boot"] is not None) == set_aside
+            if set_aside:
+                assert det.debug["boot"]["candidates"] >= 1
+                assert _near(det.points_xy, truth[0])
+                assert pipe.novelty.light == "night-strobe"   # its first update's
+        finally:
+            pipe.close()

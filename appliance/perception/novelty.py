@@ -23,6 +23,7 @@ Stages (paper section III):
 """
 from __future__ import annotations
 
+import collections
 import math
 import threading
 from dataclasses import dataclass
@@ -32,6 +33,10 @@ import numpy as np
 
 D = 8                       # descriptor dimensionality (eq. 1)
 POOL = 8                    # pixels per pooled sample for the stabilising warp (cell_px / 4)
+LIGHT_UPDATES = 20          # a model's light: that of most of its newest updates (the strobe's
+#                             unlit probe frames at night are a few of them)
+BOOT_LIGHT_FRAMES = 30      # a loaded day model is set aside at a strobe-lit frame this soon
+#                             after the load (3 s at 10 Hz: a night boot's unlit first frames)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -594,6 +599,9 @@ class NoveltyDetector:
         self._handed = 0                       # updates handed over (or loaded)
         self._boot_exclude = None              # the boot check's cells (the first update's)
         self._log_rho = -math.log10(o.rho)
+        self._lights: collections.deque = collections.deque(maxlen=LIGHT_UPDATES)
+        self.loaded_light: str | None = None   # the light a loaded model was learnt under
+        self._loaded_at = None                 # self.frames when it was loaded
 
     # ---- per frame -------------------------------------------------------------------------
     def cell_px_for(self, width: int) -> int:
@@ -631,8 +639,37 @@ class NoveltyDetector:
         """True once the first update has been handed over (or a saved model was loaded)."""
         return self._first_sent
 
+    @property
+    def light(self) -> str | None:
+        """The light (a frame's ``illumination``) most of the model's newest updates were
+        learnt under; None before the first or when no frame said."""
+        named = [x for x in self._lights if x]
+        return max(set(named), key=named.count) if named else None
+
+    def set_aside_other_light(self, light: str | None) -> bool:
+        """A model loaded from the state directory that was learnt by day, met by a frame lit
+        by the strobe within ``BOOT_LIGHT_FRAMES`` of the load: it is set aside and the
+        detector starts empty (the first update, with the boot check, is this frame's). True
+        when that happened. Only that way round: measured (tools/boot_with_model.py --cross,
+        thirtieth session), a night model by day changed nothing, a day model at night made
+        the boot's false stops; and a box booting at night labels its first frames "day"
+        (the strobe is off until the day/night switch has seen a dark frame), so a day frame
+        says nothing at boot."""
+        if (self.loaded_light != "day" or light != "night-strobe" or self._loaded_at is None
+                or self.frames - self._loaded_at > BOOT_LIGHT_FRAMES):
+            return False
+        self.wait_idle(5.0)
+        self.model.load(np.zeros((0, D), np.float32), np.zeros(0), 0)
+        self._first_sent = False
+        self._handed = 0
+        self._boot_exclude = None
+        self._lights.clear()
+        self.loaded_light = self._loaded_at = None
+        return True
+
     def learn(self, result: NoveltyResult, exclude: np.ndarray | None = None,
-              force: bool = False, first_exclude: np.ndarray | None = None) -> bool:
+              force: bool = False, first_exclude: np.ndarray | None = None,
+              light: str | None = None) -> bool:
         """Count a frame; on the first frame and every ``update_every_frames`` hand its valid
         cells (minus ``exclude``, cells near obstacles) to the background update. Returns True
         when samples were handed over.
@@ -666,6 +703,7 @@ class NoveltyDetector:
             return False
         self._first_sent = True
         self._handed += 1
+        self._lights.append(light)
         if self.updater is not None:
             self.updater.submit(samples)
         else:
@@ -691,9 +729,12 @@ class NoveltyDetector:
         x, w, updates = self.model.state()
         if len(w) == 0:
             return None
-        return {"version": self.STATE_VERSION, "fingerprint": self.fingerprint(),
-                "x": np.array(x, np.float32), "w": np.array(w, np.float64),
-                "updates": int(updates)}
+        out = {"version": self.STATE_VERSION, "fingerprint": self.fingerprint(),
+               "x": np.array(x, np.float32), "w": np.array(w, np.float64),
+               "updates": int(updates)}
+        if self.light is not None:
+            out["light"] = self.light
+        return out
 
     def import_state(self, state: dict) -> None:
         """Take a saved model (from :meth:`export_state`). Raises ValueError naming what does
@@ -714,7 +755,13 @@ class NoveltyDetector:
         if not (np.all(np.isfinite(x)) and np.all(np.isfinite(w)) and np.all(w > 0)):
             raise ValueError("model holds non-finite samples or non-positive weights")
         updates = int(state.get("updates", 1))
+        light = state.get("light")
+        if light is not None and not isinstance(light, str):
+            raise ValueError(f"model light {light!r} is not a name")
         self.model.load(x.astype(np.float32), w.astype(np.float64), max(1, updates))
+        self.loaded_light, self._loaded_at = light, self.frames
+        self._lights.clear()
+        self._lights.append(light)
         self._first_sent = True
         # a model learnt before (the state directory's) is no young one: no warm-up
         self._handed = max(1, updates, getattr(self.o, "warmup_updates", 0))

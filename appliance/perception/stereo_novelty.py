@@ -10,6 +10,7 @@ cells, minus those near the obstacles just found, go to the background model upd
 """
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections import deque
@@ -31,6 +32,8 @@ from .stereo import (StereoConfig, StereoPipeline, band_mask, check_matcher, ded
                      match_factor, merge_strips, point_confidence, points_from_disparity,
                      scaled_calibration, strip_boxes, vertical_support, local_ground_of,
                      heights_above)
+
+log = logging.getLogger(__name__)
 
 # the paper gives the 32x32 cells, the 40-frame update and the 3-sigma search; the other
 # defaults were chosen on a tuning run (stubble-empty, seed 1), see docs/stereo-novelty.md
@@ -596,6 +599,10 @@ class StereoNoveltyPipeline(Pipeline):
         H, W = fr.left.shape[:2]
         self._coarse = None
         self._canopy_src = None
+        if self.novelty.set_aside_other_light(fr.illumination):
+            log.warning("%s: the novelty model loaded at start was learnt by day and the "
+                        "strobe lights these frames: set aside, learning afresh (with the "
+                        "boot check)", self.name)
         t0, c0 = time.perf_counter(), time.thread_time()
         kd = match_factor(W, o.descriptor_width_px)
         if kd > 1:
@@ -682,7 +689,8 @@ class StereoNoveltyPipeline(Pipeline):
             if len(boot["xy"]):
                 xy = dedupe_cells(np.concatenate([xy, boot["xy"]]))
                 cands = tuple(cands) + boot["candidates"]
-        self.novelty.learn(res, exclude, first_exclude=None if boot is None else boot["exclude"])
+        self.novelty.learn(res, exclude, first_exclude=None if boot is None else boot["exclude"],
+                           light=fr.illumination)
         t4, c4 = time.perf_counter(), time.thread_time()
         self.last = (res, cam_mask, exclude)     # cam_mask at the descriptor resolution
         self.last_points = (pts, px, h, keep, k)  # for tools: this frame's dense points
