@@ -378,3 +378,12 @@ def test_a_pipeline_booting_at_night_with_a_day_model_learns_afresh_with_the_boo
                 assert pipe.novelty.light == "night-strobe"   # its first update's
         finally:
             pipe.close()
+
+
+def test_a_tie_of_lights_goes_to_the_newer():
+    d = _detector(update_every_frames=1)
+    for i, light in enumerate(["day"] * 10 + ["night-strobe"] * 10):
+        d.learn(_fake_result(i), light=light)
+    assert d.light == "night-strobe"
+    d.learn(_fake_result(50), light="day")    # the oldest day fell out: 10 and 10, day newer
+    assert d.light == "day"

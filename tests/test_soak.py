@@ -68,11 +68,12 @@ def stop_soak(proc: subprocess.Popen) -> None:
 
 
 def test_short_soak_no_false_clear_stop_within_two_cycles_no_fd_growth(tmp_path, background_soak):
-    """Run alone, the soak is started here. In the whole suite tests/conftest.py starts it at
-    the beginning, while the modules that run in simulated time (no wall clock in what they
-    assert) go first, and this test collects it: the soak's ~95 s overlap theirs. The soak and
-    its children run at nice -10, as the box would have its computer to itself; the tests
-    beside it take the other core."""
+    """Run alone, the soak is started here. In a plain `pytest` of the whole suite
+    tests/conftest.py starts it at the beginning, while the modules that run in simulated time
+    (no wall clock in what they assert) go first, and this test collects it: the soak's ~95 s
+    overlap theirs. In `./tools/test.sh`'s first phase (pytest-xdist) this test runs first on
+    one worker and starts it here, the other workers running those modules. The soak and its
+    children run at nice -10, as the box would have its computer to itself."""
     why = soak_missing()
     if why:
         missing_tool(why)

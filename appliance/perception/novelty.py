@@ -644,7 +644,10 @@ class NoveltyDetector:
         """The light (a frame's ``illumination``) most of the model's newest updates were
         learnt under; None before the first or when no frame said."""
         named = [x for x in self._lights if x]
-        return max(set(named), key=named.count) if named else None
+        if not named:
+            return None
+        # a tie goes to the newer light (never to a set's order: the file would differ by run)
+        return max(dict.fromkeys(reversed(named)), key=named.count)
 
     def set_aside_other_light(self, light: str | None) -> bool:
         """A model loaded from the state directory that was learnt by day, met by a frame lit
