@@ -80,38 +80,33 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     n, i = len(kinds) * len(seeds), 0
-    order = [(seed, kind) for seed in seeds for kind in kinds] if a.cross else \
-        [(seed, kind) for kind in kinds for seed in seeds]
-    for seed, kind in order:
-        i += 1
-        # the runs from empty: this scene's; with --cross both scenes' of this seed, before
-        # the first of them boots with the other's model
-        firsts = [] if a.cross and kind == kinds[1] else kinds if a.cross else [kind]
-        for k in firsts:
+    # each group's runs from empty, then each of them again loading a model: its own, or with
+    # --cross the other scene's of the same seed (both scenes of a seed are one group)
+    groups = [(seed, kinds) for seed in seeds] if a.cross else \
+        [(seed, [kind]) for kind in kinds for seed in seeds]
+    for seed, group in groups:
+        firsts = []
+        for k in group:
             m = out / f"{k}-{seed}.npz"
             m.unlink(missing_ok=True)
-            print(f"[{i}/{n}] {k} {seed}: from empty...", file=sys.stderr, flush=True)
-            first = one(k, seed, a.minutes, extra, m)
+            print(f"[{i + 1}/{n}] {k} {seed}: from empty...", file=sys.stderr, flush=True)
+            firsts.append(one(k, seed, a.minutes, extra, m))
             if not m.exists():
                 print(f"boot_with_model: error: {k} {seed}: no model was saved (does the "
                       "config run stereo-novelty?)", file=sys.stderr)
                 return 1
-            rows.append({"kind": k, "seed": seed, "empty": first})
-        row = next(r for r in rows if r["kind"] == kind and r["seed"] == seed)
-        source = kind
-        if a.cross:
-            source = kinds[1] if kind == kinds[0] else kinds[0]
-            # a copy: the run saves its own model at its end, over the file it loaded
-            loaded_file = out / f"{kind}-{seed}-with-{source}.npz"
-            loaded_file.write_bytes((out / f"{source}-{seed}.npz").read_bytes())
-        else:
-            loaded_file = out / f"{kind}-{seed}.npz"
-        print(f"[{i}/{n}] {kind} {seed}: with the model of {source}...", file=sys.stderr,
-              flush=True)
-        row["loaded"] = one(kind, seed, a.minutes, extra, loaded_file)
-        row["model_of"] = source
-        (out / "rows.json").write_text(json.dumps(rows, indent=1))
-    rows = [r for r in rows if "loaded" in r]
+        for k, first in zip(group, firsts):
+            i += 1
+            source = next(x for x in group if x != k) if a.cross else k
+            loaded_file = out / f"{k}-{seed}.npz"
+            if a.cross:           # a copy: the run saves its own model at its end, over it
+                loaded_file = out / f"{k}-{seed}-with-{source}.npz"
+                loaded_file.write_bytes((out / f"{source}-{seed}.npz").read_bytes())
+            print(f"[{i}/{n}] {k} {seed}: with the model of {source}...", file=sys.stderr,
+                  flush=True)
+            rows.append({"kind": k, "seed": seed, "empty": first, "model_of": source,
+                         "loaded": one(k, seed, a.minutes, extra, loaded_file)})
+            (out / "rows.json").write_text(json.dumps(rows, indent=1))
     tot = {w: {k: sum(r[w][k] for r in rows) for k in KEYS} for w in ("empty", "loaded")}
     if a.json:
         print(json.dumps({"rows": rows, "total": tot}))
