@@ -27,7 +27,7 @@ apt_ensure() {
 pip_ensure() {
   local mod=$1
   shift
-  "$PY" -c "import $mod" 2>/dev/null || "$PY" -m pip install --quiet "$@"
+  "$PY" -c "import $mod" 2>/dev/null || PY=$PY bash "$(dirname "${BASH_SOURCE[0]}")/pyinstall.sh" "$@"
 }
 
 PY=${PY:-.venv/bin/python}
@@ -36,6 +36,6 @@ PY=${PY:-.venv/bin/python}
 apt_ensure iproute2 chromium chromium-driver
 # MAVProxy without its GUI dependencies (vtk, matplotlib, opencv: over 1 GB)
 if [ -x "$PY" ] && ! "$PY" -c "import MAVProxy" 2>/dev/null; then
-  "$PY" -m pip install --quiet pymavlink defusedxml pyserial pynmeagps
-  "$PY" -m pip install --quiet --no-deps MAVProxy
+  PY=$PY bash tools/pyinstall.sh pymavlink defusedxml pyserial pynmeagps
+  PY=$PY bash tools/pyinstall.sh --no-deps MAVProxy
 fi

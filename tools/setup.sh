@@ -12,7 +12,6 @@ fi
 stamp=.venv/.fieldguard-installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
   echo "setup: installing fieldguard and its dependencies (first time: a minute or two)" >&2
-  .venv/bin/python -m pip install --quiet --upgrade pip
-  .venv/bin/python -m pip install --quiet -e .
+  bash tools/pyinstall.sh -e .   # uv, or pip where uv cannot be had
   touch "$stamp"
 fi

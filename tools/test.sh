@@ -18,7 +18,7 @@ fi
 stamp=.venv/.fieldguard-test-installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
   echo "test: installing the test tools into .venv" >&2
-  .venv/bin/python -m pip install --quiet -e '.[test]'
+  bash tools/pyinstall.sh -e '.[test]'
   touch "$stamp"
 fi
 # again, now that .venv exists: its Python half (the freenect binding, built against the
