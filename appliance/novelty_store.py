@@ -19,6 +19,12 @@ Where: ``[perception.stereo-novelty] model_state``: "auto" (default) = the servi
 directory ($STATE_DIRECTORY, set by systemd's ``StateDirectory=``), file
 ``novelty-<pipeline>.npz``; "off" = never; anything else = that path.
 
+One model per light: the latest file holds the newest model whatever its light; a model learnt
+under the strobe is also written to ``<file>.night-strobe.npz`` beside it, which a day save
+does not replace. A box that boots with a day model and finds the strobe lighting its frames
+(it was parked by day and started after dark) swaps in that night model instead of learning
+from empty (docs/front-end.md "A model of the other light").
+
 The boot guard (``boot_guard``) is what makes a fresh start safe; the stored model is not
 trusted more than that: after loading, every update still leaves out the cells near what the
 frame detected.
@@ -33,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from appliance.perception.novelty import NIGHT_LIGHT
 from appliance.periodic import Periodic
 
 log = logging.getLogger("fieldguard.novelty")
@@ -49,6 +56,13 @@ def state_path(setting: str, pipeline: str, env: dict | None = None) -> Path | N
         d = env.get("STATE_DIRECTORY", "").split(":")[0]
         return Path(d) / f"novelty-{pipeline}.npz" if d else None
     return Path(setting)
+
+
+def light_path(path: Path, light: str) -> Path:
+    """The file that keeps the newest model learnt under ``light`` beside ``path`` (the latest
+    model, whatever its light): ``novelty-stereo-novelty.night-strobe.npz``."""
+    path = Path(path)
+    return path.with_name(f"{path.stem}.{light}{path.suffix}")
 
 
 def save(path: Path, state: dict) -> None:
@@ -126,7 +140,23 @@ def load_into(pipelines, env: dict | None = None) -> list[str]:
         log.info("novelty model %s loaded: %d samples, learnt under %s light", path,
                  p.novelty.model.size, state.get("light") or "unrecorded")
         done.append(str(path))
+        if state.get("light") == "day":
+            _keep_night_model(p, light_path(path, NIGHT_LIGHT))
     return done
+
+
+def _keep_night_model(p, path: Path) -> None:
+    """A day model was loaded: the strobe-lit model beside it (if any, and fit) is kept for a
+    boot that turns out to be at night (NoveltyDetector.set_aside_other_light)."""
+    state = read(path)
+    if state is None:
+        return
+    try:
+        p.novelty.keep_night_model(state)
+    except ValueError as exc:
+        log.warning("novelty model %s not kept for the night (%s)", path, exc)
+        return
+    log.info("novelty model %s kept for a strobe-lit boot", path)
 
 
 def save_from(pipelines, env: dict | None = None) -> list[str]:
@@ -143,6 +173,8 @@ def save_from(pipelines, env: dict | None = None) -> list[str]:
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             save(path, state)
+            if state.get("light") == NIGHT_LIGHT:    # also kept apart: a day save won't replace it
+                save(light_path(path, NIGHT_LIGHT), state)
         except Exception as exc:             # noqa: BLE001 - shutting down: log, go on
             log.warning("novelty model %s not saved: %s", path, exc)
             continue

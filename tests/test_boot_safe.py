@@ -387,3 +387,105 @@ def test_a_tie_of_lights_goes_to_the_newer():
     assert d.light == "night-strobe"
     d.learn(_fake_result(50), light="day")    # the oldest day fell out: 10 and 10, day newer
     assert d.light == "day"
+
+
+# ---- one model per light (thirty-first session) ---------------------------------------------
+def _lit(light, n=5, seed=0):
+    d = _detector(update_every_frames=1)
+    for i in range(n):
+        d.learn(_fake_result(seed + i), light=light)
+    return d
+
+
+def test_a_day_model_met_by_the_strobe_gives_way_to_the_kept_night_model():
+    day, night = _lit("day").export_state(), _lit("night-strobe", n=7, seed=50).export_state()
+    e = _detector(update_every_frames=1)
+    e.import_state(day)
+    e.keep_night_model(night)
+    assert e.set_aside_other_light("day") is None              # by day: the day model stays
+    assert e.model.size == len(day["w"])
+    assert e.set_aside_other_light("night-strobe") == "night model"
+    assert e.model.size == len(night["w"]) and e.first_sent and e.light == "night-strobe"
+    x, _w, _u = e.model.state()
+    assert np.allclose(np.sort(x, axis=0), np.sort(night["x"], axis=0))
+    assert e.set_aside_other_light("night-strobe") is None     # once: a night model stays
+    # nothing kept: set aside for an empty model, as before
+    f = _detector(update_every_frames=1)
+    f.import_state(day)
+    assert f.set_aside_other_light("night-strobe") == "empty" and f.model.empty
+    # only a strobe-lit model of this detector's settings is kept; nothing kept otherwise
+    g = _detector(update_every_frames=1)
+    g.import_state(day)
+    with pytest.raises(ValueError, match="day light, not night-strobe"):
+        g.keep_night_model(day)
+    with pytest.raises(ValueError, match="other settings"):
+        g.keep_night_model({**night, "fingerprint": "x"})
+    assert g.set_aside_other_light("night-strobe") == "empty"
+
+
+def test_the_state_directory_keeps_the_night_model_through_a_day_save(tmp_path, caplog):
+    env = {"STATE_DIRECTORY": str(tmp_path)}
+    o = dataclasses.replace(StereoNoveltyConfig(), model_state="auto", update_every_frames=1)
+    latest = tmp_path / "novelty-stereo-novelty.npz"
+    night_file = tmp_path / "novelty-stereo-novelty.night-strobe.npz"
+    assert novelty_store.light_path(latest, "night-strobe") == night_file
+
+    def pipe_lit(light, n, seed):
+        p = StereoNoveltyPipeline(o, background=False)
+        for i in range(n):
+            p.novelty.learn(_fake_result(seed + i), light=light)
+        return p
+    p = pipe_lit("night-strobe", 7, 50)             # a night's work: both files
+    assert novelty_store.save_from([p], env) == [str(latest)]
+    assert novelty_store.read(night_file)["light"] == "night-strobe"
+    q = pipe_lit("day", 5, 0)                        # the next day's: the latest only
+    novelty_store.save_from([q], env)
+    assert novelty_store.read(latest)["light"] == "day"
+    assert novelty_store.read(night_file)["light"] == "night-strobe"
+    # booting: the day model is loaded, the night one kept for a strobe-lit boot
+    r = StereoNoveltyPipeline(o, background=False)
+    with caplog.at_level(logging.INFO, "fieldguard.novelty"):
+        assert novelty_store.load_into([r], env) == [str(latest)]
+    assert "kept for a strobe-lit boot" in caplog.text
+    assert r.novelty.loaded_light == "day" and r.novelty.model.size == q.novelty.model.size
+    assert r.novelty.set_aside_other_light("night-strobe") == "night model"
+    assert r.novelty.model.size == p.novelty.model.size
+    # a damaged night file: said, not kept; the strobe-lit boot learns afresh, as before
+    night_file.write_bytes(b"not a model")
+    s = StereoNoveltyPipeline(o, background=False)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, "fieldguard.novelty"):
+        assert novelty_store.load_into([s], env) == [str(latest)]
+    assert "unreadable" in caplog.text and str(night_file) in caplog.text
+    assert s.novelty.set_aside_other_light("night-strobe") == "empty"
+    for x in (p, q, r, s):
+        x.close()
+
+
+def test_a_pipeline_booting_at_night_with_a_day_model_swaps_in_the_night_model(
+        boot_frames, tmp_path, caplog):
+    """The pipeline, on the person-at-boot frames relabelled strobe-lit: a day model loaded
+    from the state directory and a night model beside it: the night model is used (a log
+    line), as a loaded model is (no boot pass: it is no young model)."""
+    pipe, _ = _run(boot_frames[:1], boot_guard=True, pad_left=True)
+    day = pipe.novelty.export_state()
+    pipe.close()
+    night = {**day, "light": "night-strobe", "x": day["x"][::2], "w": day["w"][::2]}
+    latest = tmp_path / "m.npz"
+    novelty_store.save(latest, day)
+    novelty_store.save(novelty_store.light_path(latest, "night-strobe"), night)
+    st, veh, _truth = boot_frames[1]
+    o = dataclasses.replace(StereoNoveltyConfig(), model_state=str(latest), boot_guard=True,
+                            pad_left=True)
+    pipe = StereoNoveltyPipeline(o, background=False)
+    try:
+        assert novelty_store.load_into([pipe]) == [str(latest)]
+        frame = dataclasses.replace(st, illumination="night-strobe")
+        with caplog.at_level(logging.WARNING):
+            det = pipe.process(SensorInputs(stamp_ns=frame.stamp_ns, stereo=frame, vehicle=veh))
+        assert "set aside for the strobe-lit model saved beside it" in caplog.text
+        assert det.debug["boot"] is None
+        assert pipe.novelty.loaded_light == "night-strobe"
+        assert pipe.novelty.model.size == len(night["w"])
+    finally:
+        pipe.close()

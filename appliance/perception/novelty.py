@@ -37,6 +37,7 @@ LIGHT_UPDATES = 20          # a model's light: that of most of its newest update
 #                             unlit probe frames at night are a few of them)
 BOOT_LIGHT_FRAMES = 30      # a loaded day model is set aside at a strobe-lit frame this soon
 #                             after the load (3 s at 10 Hz: a night boot's unlit first frames)
+NIGHT_LIGHT = "night-strobe"  # the frames' illumination when the strobe lights them
 
 
 # ---------------------------------------------------------------------------------------------
@@ -602,6 +603,7 @@ class NoveltyDetector:
         self._lights: collections.deque = collections.deque(maxlen=LIGHT_UPDATES)
         self.loaded_light: str | None = None   # the light a loaded model was learnt under
         self._loaded_at = None                 # self.frames when it was loaded
+        self._night_state = None               # a kept strobe-lit model (keep_night_model)
 
     # ---- per frame -------------------------------------------------------------------------
     def cell_px_for(self, width: int) -> int:
@@ -649,26 +651,32 @@ class NoveltyDetector:
         # a tie goes to the newer light (never to a set's order: the file would differ by run)
         return max(dict.fromkeys(reversed(named)), key=named.count)
 
-    def set_aside_other_light(self, light: str | None) -> bool:
+    def set_aside_other_light(self, light: str | None) -> str | None:
         """A model loaded from the state directory that was learnt by day, met by a frame lit
-        by the strobe within ``BOOT_LIGHT_FRAMES`` of the load: it is set aside and the
-        detector starts empty (the first update, with the boot check, is this frame's). True
-        when that happened. Only that way round: measured (tools/boot_with_model.py --cross,
-        thirtieth session), a night model by day changed nothing, a day model at night made
-        the boot's false stops; and a box booting at night labels its first frames "day"
-        (the strobe is off until the day/night switch has seen a dark frame), so a day frame
-        says nothing at boot."""
-        if (self.loaded_light != "day" or light != "night-strobe" or self._loaded_at is None
+        by the strobe within ``BOOT_LIGHT_FRAMES`` of the load: it is set aside, and replaced
+        by the strobe-lit model kept beside it (:meth:`keep_night_model`: the state
+        directory's night file) if there is one, else the detector starts empty (the first
+        update, with the boot check, is this frame's). Returns what happened: "night model",
+        "empty", or None (nothing). Only that way round: measured (tools/boot_with_model.py
+        --cross, thirtieth session), a night model by day changed nothing, a day model at
+        night made the boot's false stops; and a box booting at night labels its first frames
+        "day" (the strobe is off until the day/night switch has seen a dark frame), so a day
+        frame says nothing at boot."""
+        if (self.loaded_light != "day" or light != NIGHT_LIGHT or self._loaded_at is None
                 or self.frames - self._loaded_at > BOOT_LIGHT_FRAMES):
-            return False
+            return None
         self.wait_idle(5.0)
+        night, self._night_state = self._night_state, None
+        self._boot_exclude = None
+        if night is not None:
+            self._install(*night)
+            return "night model"
         self.model.load(np.zeros((0, D), np.float32), np.zeros(0), 0)
         self._first_sent = False
         self._handed = 0
-        self._boot_exclude = None
         self._lights.clear()
         self.loaded_light = self._loaded_at = None
-        return True
+        return "empty"
 
     def learn(self, result: NoveltyResult, exclude: np.ndarray | None = None,
               force: bool = False, first_exclude: np.ndarray | None = None,
@@ -739,9 +747,9 @@ class NoveltyDetector:
             out["light"] = self.light
         return out
 
-    def import_state(self, state: dict) -> None:
-        """Take a saved model (from :meth:`export_state`). Raises ValueError naming what does
-        not fit (version, fingerprint, shapes, values); the detector is unchanged then."""
+    def _checked(self, state: dict) -> tuple:
+        """(x, w, updates, light) of a saved model (from :meth:`export_state`), or ValueError
+        naming what does not fit this detector (version, fingerprint, shapes, values)."""
         if not isinstance(state, dict):
             raise ValueError("not a novelty model")
         if state.get("version") != self.STATE_VERSION:
@@ -761,7 +769,25 @@ class NoveltyDetector:
         light = state.get("light")
         if light is not None and not isinstance(light, str):
             raise ValueError(f"model light {light!r} is not a name")
-        self.model.load(x.astype(np.float32), w.astype(np.float64), max(1, updates))
+        return x.astype(np.float32), w.astype(np.float64), max(1, updates), light
+
+    def import_state(self, state: dict) -> None:
+        """Take a saved model (from :meth:`export_state`). Raises ValueError naming what does
+        not fit (version, fingerprint, shapes, values); the detector is unchanged then."""
+        self._install(*self._checked(state))
+
+    def keep_night_model(self, state: dict) -> None:
+        """Keep a saved strobe-lit model (checked as :meth:`import_state` checks; ValueError
+        otherwise, and nothing kept) to replace a day model loaded at boot if the strobe turns
+        out to light the frames (:meth:`set_aside_other_light`)."""
+        x, w, updates, light = self._checked(state)
+        if light != NIGHT_LIGHT:
+            raise ValueError(f"model learnt under {light or 'unrecorded'} light, not "
+                             f"{NIGHT_LIGHT}")
+        self._night_state = (x, w, updates, light)
+
+    def _install(self, x, w, updates, light) -> None:
+        self.model.load(x, w, updates)
         self.loaded_light, self._loaded_at = light, self.frames
         self._lights.clear()
         self._lights.append(light)

@@ -599,7 +599,12 @@ class StereoNoveltyPipeline(Pipeline):
         H, W = fr.left.shape[:2]
         self._coarse = None
         self._canopy_src = None
-        if self.novelty.set_aside_other_light(fr.illumination):
+        swapped = self.novelty.set_aside_other_light(fr.illumination)
+        if swapped == "night model":
+            log.warning("%s: the novelty model loaded at start was learnt by day and the "
+                        "strobe lights these frames: set aside for the strobe-lit model "
+                        "saved beside it", self.name)
+        elif swapped:
             log.warning("%s: the novelty model loaded at start was learnt by day and the "
                         "strobe lights these frames: set aside, learning afresh (with the "
                         "boot check)", self.name)
