@@ -62,6 +62,37 @@ def test_cross_boots_each_scene_with_the_other_scenes_model(tmp_path, monkeypatc
     assert f"{day} 3" in out and out.count(night) >= 2
 
 
+def test_per_light_puts_the_scenes_own_night_model_beside_the_other_scenes(tmp_path,
+                                                                         monkeypatch, capsys):
+    """--cross --per-light: the night scene's second run loads the day scene's model and finds
+    its own first run's night file beside it (the box's per-light file); the day scene's,
+    which saved none, finds none. Without --cross it is refused."""
+    seen = []
+
+    def fake_one(kind, seed, minutes, extra, model):
+        night = model.with_name(f"{model.stem}.night-strobe.npz")
+        seen.append((kind, model.name, model.read_text() if model.exists() else None,
+                     night.read_text() if night.exists() else None))
+        model.write_text(f"model of {kind} {seed}")
+        if kind.endswith("night"):
+            night.write_text(f"night model of {kind} {seed}")
+        return {k: 0 for k in bwm.KEYS}
+    monkeypatch.setattr(bwm, "one", fake_one)
+    day, night = "stubble-coverage", "stubble-coverage-night"
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / f"{night}-3-with-{day}.night-strobe.npz").write_text("stale, from a run before")
+    rc = bwm.main(["--scene", f"{day},{night}", "--seeds", "3", "--cross", "--per-light",
+                   "--config", str(_config(tmp_path)), "--out", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    assert seen == [
+        (day, f"{day}-3.npz", None, None), (night, f"{night}-3.npz", None, None),
+        (day, f"{day}-3-with-{night}.npz", f"model of {night} 3", None),
+        (night, f"{night}-3-with-{day}.npz", f"model of {day} 3", f"night model of {night} 3")]
+    p = _run("--scene", f"{day},{night}", "--seeds", "1", "--per-light", "--out", str(out))
+    assert p.returncode == 2 and "--per-light goes with --cross" in p.stderr
+
+
 def _config(tmp_path):
     cfg = tmp_path / "sl.toml"
     cfg.write_text('[perception]\npipelines = ["stereo-novelty", "laser"]\n')

@@ -17,6 +17,11 @@ when a rule is to be judged on it later.
 ``--cross`` (two scenes): the second run of each scene loads the model the *other* scene's
 first run saved, seed for seed: a box that saved its model at night and boots by day, and the
 other way round (the saved model does not say what light it was learnt under).
+
+``--per-light`` (with ``--cross``): the second run also finds, beside the other scene's model,
+the per-light files its own scene's first run saved (the box keeps its strobe-lit model in a
+file of its own, ``<file>.night-strobe.npz``, which a day save does not replace): a box that
+worked the field at night, then by day, and boots at night again.
 """
 from __future__ import annotations
 
@@ -28,6 +33,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from appliance.campaign import parse_seeds as seeds_of  # noqa: E402  (the campaign's own)
+from appliance.novelty_store import light_path  # noqa: E402  (the box's own naming)
 
 KEYS = ("false_stops", "false_stops_boot", "true_stops", "missed_stops", "collisions")
 
@@ -50,6 +56,9 @@ def main(argv=None) -> int:
     ap.add_argument("--out", required=True)
     ap.add_argument("--cross", action="store_true",
                     help="two scenes: each boots with the other's model (the same seed)")
+    ap.add_argument("--per-light", action="store_true",
+                    help="with --cross: the second run also has its own scene's per-light "
+                         "files (the night model kept apart) beside the other's model")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
     from appliance.campaign import CampaignError, load_extra_config, make_spec
@@ -61,6 +70,10 @@ def main(argv=None) -> int:
         return 2
     extra = load_extra_config(a.config) if a.config else None
     kinds = [k for k in a.scene.split(",") if k]
+    if a.per_light and not a.cross:
+        print("boot_with_model: error: --per-light goes with --cross (without it each run "
+              "loads its own model, of its own light)", file=sys.stderr)
+        return 2
     if a.cross and len(kinds) != 2:
         print("boot_with_model: error: --cross wants two scenes (--scene A,B): each boots with "
               "the other's model", file=sys.stderr)
@@ -88,7 +101,8 @@ def main(argv=None) -> int:
         firsts = []
         for k in group:
             m = out / f"{k}-{seed}.npz"
-            m.unlink(missing_ok=True)
+            for old in (m, *out.glob(f"{k}-{seed}.*.npz")):    # and its per-light files
+                old.unlink(missing_ok=True)
             print(f"[{i + 1}/{n}] {k} {seed}: from empty...", file=sys.stderr, flush=True)
             firsts.append(one(k, seed, a.minutes, extra, m))
             if not m.exists():
@@ -102,6 +116,12 @@ def main(argv=None) -> int:
             if a.cross:           # a copy: the run saves its own model at its end, over it
                 loaded_file = out / f"{k}-{seed}-with-{source}.npz"
                 loaded_file.write_bytes((out / f"{source}-{seed}.npz").read_bytes())
+                for f in out.glob(f"{loaded_file.stem}.*.npz"):
+                    f.unlink()
+                if a.per_light:   # its own scene's night model (and any other light's) beside
+                    for f in out.glob(f"{k}-{seed}.*.npz"):
+                        light = f.name[len(f"{k}-{seed}."):-len(".npz")]
+                        light_path(loaded_file, light).write_bytes(f.read_bytes())
             print(f"[{i}/{n}] {k} {seed}: with the model of {source}...", file=sys.stderr,
                   flush=True)
             rows.append({"kind": k, "seed": seed, "empty": first, "model_of": source,
