@@ -40,12 +40,14 @@ fi
 rm -rf "$warm"
 workers=$(( $(nproc 2>/dev/null || echo 1) + 1 ))
 [ "$workers" -gt 5 ] && workers=5
+echo "test: environment ready after ${SECONDS} s" >&2
 echo "test: 1 of 2: the simulated-time modules and the soak, on $workers workers" >&2
 rc=0
 .venv/bin/python -m pytest --phase simulated -n "$workers" --dist loadfile \
   --no-loadscope-reorder || rc=$?
-echo "test: 2 of 2: the modules with wall-clock deadlines, alone" >&2
+echo "test: 2 of 2 (at ${SECONDS} s): the modules with wall-clock deadlines, alone" >&2
 .venv/bin/python -m pytest --phase wall-clock || rc=$?
+echo "test: done after ${SECONDS} s" >&2
 if [ "$rc" -ne 0 ]; then
   echo "test: FAILED (exit $rc): see the failures above" >&2
 fi
