@@ -73,11 +73,15 @@ def save(path: Path, state: dict) -> None:
         meta["light"] = state["light"]
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        np.savez(f, meta=np.array(json.dumps(meta)), x=state["x"], w=state["w"])
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as f:
+            np.savez(f, meta=np.array(json.dumps(meta)), x=state["x"], w=state["w"])
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)           # no half-written file left behind
+        raise
     try:                      # the rename itself must survive a power cut
         fd = os.open(path.parent, os.O_RDONLY)
     except OSError:
@@ -90,8 +94,9 @@ def save(path: Path, state: dict) -> None:
         os.close(fd)
 
 
-def read(path: Path) -> dict | None:
-    """The state in ``path``, or None (missing: silently; unreadable or not ours: logged)."""
+def read(path: Path, then: str = "starting with an empty model") -> dict | None:
+    """The state in ``path``, or None (missing: silently; unreadable or not ours: logged,
+    with ``then``: what the box does instead)."""
     path = Path(path)
     if not path.exists():
         return None
@@ -106,8 +111,7 @@ def read(path: Path) -> dict | None:
                     "updates": meta.get("updates", 1), "x": np.array(z["x"]),
                     "w": np.array(z["w"]), "light": meta.get("light")}
     except Exception as exc:                 # noqa: BLE001 - any bad file is a fresh start
-        log.warning("novelty model %s unreadable (%s): starting with an empty model", path,
-                    exc)
+        log.warning("novelty model %s unreadable (%s): %s", path, exc, then)
         return None
 
 
@@ -148,13 +152,13 @@ def load_into(pipelines, env: dict | None = None) -> list[str]:
 def _keep_night_model(p, path: Path) -> None:
     """A day model was loaded: the strobe-lit model beside it (if any, and fit) is kept for a
     boot that turns out to be at night (NoveltyDetector.set_aside_other_light)."""
-    state = read(path)
+    state = read(path, then="not kept for a strobe-lit boot")
     if state is None:
         return
     try:
         p.novelty.keep_night_model(state)
     except ValueError as exc:
-        log.warning("novelty model %s not kept for the night (%s)", path, exc)
+        log.warning("novelty model %s not kept for a strobe-lit boot (%s)", path, exc)
         return
     log.info("novelty model %s kept for a strobe-lit boot", path)
 
@@ -173,12 +177,16 @@ def save_from(pipelines, env: dict | None = None) -> list[str]:
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             save(path, state)
-            if state.get("light") == NIGHT_LIGHT:    # also kept apart: a day save won't replace it
-                save(light_path(path, NIGHT_LIGHT), state)
         except Exception as exc:             # noqa: BLE001 - shutting down: log, go on
             log.warning("novelty model %s not saved: %s", path, exc)
             continue
         done.append(str(path))
+        if state.get("light") == NIGHT_LIGHT:    # also kept apart: a day save won't replace it
+            night = light_path(path, NIGHT_LIGHT)
+            try:
+                save(night, state)
+            except Exception as exc:         # noqa: BLE001 - as above
+                log.warning("novelty model %s not saved: %s", night, exc)
     return done
 
 

@@ -456,8 +456,18 @@ def test_the_state_directory_keeps_the_night_model_through_a_day_save(tmp_path, 
     caplog.clear()
     with caplog.at_level(logging.WARNING, "fieldguard.novelty"):
         assert novelty_store.load_into([s], env) == [str(latest)]
-    assert "unreadable" in caplog.text and str(night_file) in caplog.text
+    assert f"{night_file} unreadable" in caplog.text
+    assert "not kept for a strobe-lit boot" in caplog.text and "empty model" not in caplog.text
     assert s.novelty.set_aside_other_light("night-strobe") == "empty"
+    # the night file cannot be written (a directory in its place): said; the latest is saved
+    night_file.unlink()
+    night_file.mkdir()
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, "fieldguard.novelty"):
+        assert novelty_store.save_from([p], env) == [str(latest)]
+    assert f"{night_file} not saved" in caplog.text
+    assert not list(tmp_path.glob("*.tmp"))                 # nothing half-written left
+    assert novelty_store.read(latest)["light"] == "night-strobe"
     for x in (p, q, r, s):
         x.close()
 
