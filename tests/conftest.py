@@ -37,15 +37,11 @@ def _restore_root_logging():
 
 # -- the simulated-time modules: the soak beside them, and both cores for them ---------------
 # These modules run in simulated time (lock-step daemons, pace 0; CLI tools; an install into
-# a directory; no wall-clock figure asserted, no status socket), so sharing the machine
-# changes nothing they check. Two more check no time either: test_campaign (a local Ray's
-# two workers give the same drives as one worker without Ray: lock-step drives, compared
-# figure for figure) and test_bench_stereo (the benchmark prints its figures; it asserts that
-# they are printed and that a frame's perception + decision is at least its perception, an
-# elementwise sum); their timings under a shared machine mean nothing and are not read.
-# Every other module (links, devices, the console, services: wall-clock deadlines) runs
-# alone, one test at a time; a new module is one of those until it is listed here. Listed
-# slowest first (`--durations=0`, 2026-12-06): the order in which they are handed out.
+# a directory; no wall-clock figure asserted, no status socket, no Ray), so sharing the
+# machine changes nothing they check. Every other module (links, devices, the console,
+# services, Ray, the benchmarks: wall-clock deadlines) runs alone, one test at a time; a new
+# module is one of those until it is listed here. Listed slowest first (`--durations=0`,
+# 2026-12-06): the order in which they are handed out.
 #  - `./tools/test.sh` with no arguments (the whole suite, what CI runs) runs them first, as
 #    `--phase simulated` on pytest-xdist's workers (one per core and one for the soak's test,
 #    which waits; a module stays on one worker: its fixtures are computed once), the soak a
@@ -53,8 +49,7 @@ def _restore_root_logging():
 #  - A plain `pytest` (no phase) runs them first too, in one process, with the soak in the
 #    background: tools/soak.py's ~95 s of wall clock, in which the box's own processes use
 #    half a core at nice -10, overlap theirs; the soak test then collects the result.
-SIMULATED = ("test_bench_stereo.py", "test_campaign.py", "test_campaign_shadow.py",
-             "test_laser_false_stops.py", "test_cue.py",
+SIMULATED = ("test_campaign_shadow.py", "test_laser_false_stops.py", "test_cue.py",
              "test_campaign_compare.py", "test_laser_ground_probe.py", "test_fuzz_short.py",
              "test_eval_out.py", "test_rgbd_sim.py", "test_low_obstacles.py", "test_deploy.py",
              "test_canopy.py", "test_why_false_stops.py", "test_sim_scenes.py", "test_sim_loop.py",
