@@ -97,3 +97,27 @@ def _config(tmp_path):
     cfg = tmp_path / "sl.toml"
     cfg.write_text('[perception]\npipelines = ["stereo-novelty", "laser"]\n')
     return cfg
+
+
+def test_other_field_loads_the_model_of_the_other_seed_of_its_pair(tmp_path, monkeypatch,
+                                                                   capsys):
+    """--other-field: seeds in pairs; each drive's second run loads a copy of the model the
+    same scene's drive of the other seed saved; an odd number of seeds is refused."""
+    calls = []
+
+    def fake_one(kind, seed, minutes, extra, model):
+        calls.append((kind, seed, model.name, model.read_text() if model.exists() else None))
+        model.write_text(f"model of {kind} {seed}")
+        return {k: 0 for k in bwm.KEYS}
+    monkeypatch.setattr(bwm, "one", fake_one)
+    day = "stubble-coverage"
+    rc = bwm.main(["--scene", day, "--seeds", "5-6", "--other-field",
+                   "--config", str(_config(tmp_path)), "--out", str(tmp_path / "o")])
+    assert rc == 0, capsys.readouterr().err
+    assert calls == [
+        (day, 5, f"{day}-5.npz", None), (day, 6, f"{day}-6.npz", None),
+        (day, 5, f"{day}-5-with-{day}-6.npz", f"model of {day} 6"),
+        (day, 6, f"{day}-6-with-{day}-5.npz", f"model of {day} 5")]
+    assert f"{day} 6" in capsys.readouterr().out
+    p = _run("--scene", day, "--seeds", "5-7", "--other-field", "--out", str(tmp_path))
+    assert p.returncode == 2 and "--other-field wants an even number" in p.stderr

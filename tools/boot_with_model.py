@@ -18,6 +18,10 @@ when a rule is to be judged on it later.
 first run saved, seed for seed: a box that saved its model at night and boots by day, and the
 other way round (the saved model does not say what light it was learnt under).
 
+``--other-field``: the seeds in pairs (79,80), (81,82), ...: the second run of each drive
+loads the model the same scene's drive of the other seed saved: another field of the same
+kind and light (a box moved to the next field with yesterday's model).
+
 ``--per-light`` (with ``--cross``): the second run also finds, beside the other scene's model,
 the per-light files its own scene's first run saved (the box keeps its strobe-lit model in a
 file of its own, ``<file>.night-strobe.npz``, which a day save does not replace): a box that
@@ -56,6 +60,10 @@ def main(argv=None) -> int:
     ap.add_argument("--out", required=True)
     ap.add_argument("--cross", action="store_true",
                     help="two scenes: each boots with the other's model (the same seed)")
+    ap.add_argument("--other-field", action="store_true",
+                    help="seeds in pairs (an even number): each drive's second run loads the "
+                         "model of the same scene's drive of the other seed of its pair (a box "
+                         "moved to another field)")
     ap.add_argument("--per-light", action="store_true",
                     help="with --cross: the second run also has its own scene's per-light "
                          "files (the night model kept apart) beside the other's model")
@@ -70,6 +78,10 @@ def main(argv=None) -> int:
         return 2
     extra = load_extra_config(a.config) if a.config else None
     kinds = [k for k in a.scene.split(",") if k]
+    if a.other_field and (a.cross or len(seeds) % 2):
+        print("boot_with_model: error: --other-field wants an even number of seeds (each loads "
+              "the model of the other seed of its pair), and not --cross", file=sys.stderr)
+        return 2
     if a.per_light and not a.cross:
         print("boot_with_model: error: --per-light goes with --cross (without it each run "
               "loads its own model, of its own light)", file=sys.stderr)
@@ -94,12 +106,17 @@ def main(argv=None) -> int:
     rows = []
     n, i = len(kinds) * len(seeds), 0
     # each group's runs from empty, then each of them again loading a model: its own, or with
-    # --cross the other scene's of the same seed (both scenes of a seed are one group)
-    groups = [(seed, kinds) for seed in seeds] if a.cross else \
-        [(seed, [kind]) for kind in kinds for seed in seeds]
-    for seed, group in groups:
+    # --cross the other scene's of the same seed (both scenes of a seed are one group), or
+    # with --other-field the same scene's of the other seed of a pair
+    if a.cross:
+        groups = [[(k, seed) for k in kinds] for seed in seeds]
+    elif a.other_field:
+        groups = [[(k, s1), (k, s2)] for k in kinds for s1, s2 in zip(seeds[::2], seeds[1::2])]
+    else:
+        groups = [[(k, seed)] for k in kinds for seed in seeds]
+    for group in groups:
         firsts = []
-        for k in group:
+        for k, seed in group:
             m = out / f"{k}-{seed}.npz"
             for old in (m, *out.glob(f"{k}-{seed}.*.npz")):    # and its per-light files
                 old.unlink(missing_ok=True)
@@ -109,13 +126,14 @@ def main(argv=None) -> int:
                 print(f"boot_with_model: error: {k} {seed}: no model was saved (does the "
                       "config run stereo-novelty?)", file=sys.stderr)
                 return 1
-        for k, first in zip(group, firsts):
+        for (k, seed), first in zip(group, firsts):
             i += 1
-            source = next(x for x in group if x != k) if a.cross else k
+            sk, ss = next(x for x in group if x != (k, seed)) if len(group) > 1 else (k, seed)
+            source = sk if a.cross else f"{sk} {ss}" if a.other_field else k
             loaded_file = out / f"{k}-{seed}.npz"
-            if a.cross:           # a copy: the run saves its own model at its end, over it
-                loaded_file = out / f"{k}-{seed}-with-{source}.npz"
-                loaded_file.write_bytes((out / f"{source}-{seed}.npz").read_bytes())
+            if len(group) > 1:    # a copy: the run saves its own model at its end, over it
+                loaded_file = out / f"{k}-{seed}-with-{source.replace(' ', '-')}.npz"
+                loaded_file.write_bytes((out / f"{sk}-{ss}.npz").read_bytes())
                 for f in out.glob(f"{loaded_file.stem}.*.npz"):
                     f.unlink()
                 if a.per_light:   # its own scene's night model (and any other light's) beside
