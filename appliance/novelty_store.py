@@ -164,8 +164,9 @@ def _keep_night_model(p, path: Path) -> None:
 
 
 def save_from(pipelines, env: dict | None = None) -> list[str]:
-    """Save each stereo-novelty pipeline's model (an empty model is not written). A failure
-    to write is logged, never raised (the box is shutting down or running)."""
+    """Save each stereo-novelty pipeline's model (an empty model is not written; a strobe-lit
+    one also to its night file); returns the files written. A failure to write is logged,
+    never raised (the box is shutting down or running)."""
     done = []
     for p in _novelty_pipelines(pipelines):
         path = state_path(getattr(p.options, "model_state", "off"), p.name, env)
@@ -187,6 +188,8 @@ def save_from(pipelines, env: dict | None = None) -> list[str]:
                 save(night, state)
             except Exception as exc:         # noqa: BLE001 - as above
                 log.warning("novelty model %s not saved: %s", night, exc)
+                continue
+            done.append(str(night))          # status lists it: the technician sees both
     return done
 
 

@@ -436,7 +436,7 @@ def test_the_state_directory_keeps_the_night_model_through_a_day_save(tmp_path, 
             p.novelty.learn(_fake_result(seed + i), light=light)
         return p
     p = pipe_lit("night-strobe", 7, 50)             # a night's work: both files
-    assert novelty_store.save_from([p], env) == [str(latest)]
+    assert novelty_store.save_from([p], env) == [str(latest), str(night_file)]
     assert novelty_store.read(night_file)["light"] == "night-strobe"
     q = pipe_lit("day", 5, 0)                        # the next day's: the latest only
     novelty_store.save_from([q], env)
