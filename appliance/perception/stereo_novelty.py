@@ -600,14 +600,11 @@ class StereoNoveltyPipeline(Pipeline):
         self._coarse = None
         self._canopy_src = None
         swapped = self.novelty.set_aside_other_light(fr.illumination)
-        if swapped == "night model":
+        if swapped:
             log.warning("%s: the novelty model loaded at start was learnt by day and the "
-                        "strobe lights these frames: set aside for the strobe-lit model "
-                        "saved beside it", self.name)
-        elif swapped:
-            log.warning("%s: the novelty model loaded at start was learnt by day and the "
-                        "strobe lights these frames: set aside, learning afresh (with the "
-                        "boot check)", self.name)
+                        "strobe lights these frames: set aside%s", self.name,
+                        " for the strobe-lit model saved beside it" if swapped == "night model"
+                        else ", learning afresh (with the boot check)")
         t0, c0 = time.perf_counter(), time.thread_time()
         kd = match_factor(W, o.descriptor_width_px)
         if kd > 1:
