@@ -1427,6 +1427,14 @@ def main(argv=None) -> int:
     # machine is doing. The soak and everything it starts (the daemon, the emulators, MAVProxy,
     # the cameras) run at nice -10, so that other work on a shared host does not starve the box
     # into faults of its own; a starved loop is still injected on purpose (cpu_starve).
+    # A soak started by a process at the lowest CPU priority (tools/test.sh runs the suite's
+    # simulated-time modules, the soak's test among them, under SCHED_IDLE) would hand that
+    # policy to the box; nice does not change a policy, so the normal one is asked for first.
+    try:
+        if os.sched_getscheduler(0) != os.SCHED_OTHER:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    except (OSError, AttributeError):
+        pass
     try:
         os.nice(-10 - os.nice(0))
     except OSError:
