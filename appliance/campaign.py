@@ -147,22 +147,51 @@ def make_spec(kind: str, seed: int, minutes: float, stereo_scale: float,
     return spec
 
 
-def run_drive(spec: dict, report=None) -> dict:
-    """Drive one spec; ``report(sim_s)`` is called every 30 simulated seconds."""
-    from appliance.campaign_drive import Drive
+# The novelty model a drive saves (--save-models) or boots with (--models-from): the files in
+# DIR/drives/KIND-SEED/models/, named as the box names its state (the latest model, and beside
+# it the strobe-lit one: appliance/novelty_store.light_path)
+MODEL_DIR = "models"
+MODEL_FILE = "novelty.npz"
+NOVELTY_PIPELINES = ("stereo-novelty", "fused")
+
+
+def run_drive(spec: dict, report=None, models: dict | None = None) -> dict:
+    """Drive one spec; ``report(sim_s)`` is called every 30 simulated seconds. ``models``
+    ({file name: bytes}, the files of a drive's MODEL_DIR): the box boots with them, as an
+    installed box boots with the model it saved. With ``spec["save_models"]`` the drive's
+    models at its end (saved at the daemon's shutdown, as the box saves them) are returned as
+    ``out["models"]``, the same form. Bytes, not paths: a Ray worker may be another machine."""
+    import shutil
+    import tempfile
+
+    from appliance.campaign_drive import Drive, deep_merge
     cb = None
     if report is not None:
         def cb(done, _total):
             report(done / 10.0)
-    d = Drive(spec["kind"], spec["seed"], spec["minutes"], config_data=spec["config"],
-              stereo_scale=spec["stereo_scale"], progress=cb,
-              shadow_config=spec.get("shadow"))
-    out = d.run()
+    config, tmp = spec["config"], None
+    if models or spec.get("save_models"):
+        tmp = Path(tempfile.mkdtemp(prefix="fieldguard-drive-models-"))
+        for name, data in (models or {}).items():
+            (tmp / Path(name).name).write_bytes(data)
+        config = deep_merge(config, {"perception": {"stereo-novelty": {
+            "model_state": str(tmp / MODEL_FILE), "model_save_s": 0.0}}})
+    try:
+        d = Drive(spec["kind"], spec["seed"], spec["minutes"], config_data=config,
+                  stereo_scale=spec["stereo_scale"], progress=cb,
+                  shadow_config=spec.get("shadow"))
+        out = d.run()
+        if spec.get("save_models"):
+            out["models"] = {f.name: f.read_bytes() for f in sorted(tmp.glob("*.npz"))}
+    finally:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
     out["result"]["spec"] = spec
     return out
 
 
-def _ray_drive(spec: dict, tracker=None, niceness: int | None = None) -> dict:
+def _ray_drive(spec: dict, tracker=None, niceness: int | None = None,
+               models: dict | None = None) -> dict:
     """The Ray task: a drive, its progress sent to the tracker actor. Ray starts its workers
     at a lower priority than the driver (nice + 15 here); the drive's thread, and the threads
     it starts, go back to the campaign's own niceness, so ``nice -n 10 fieldguard campaign``
@@ -179,7 +208,7 @@ def _ray_drive(spec: dict, tracker=None, niceness: int | None = None) -> dict:
 
         def rep(sim_s):
             tracker.report.remote(key, sim_s)
-    return run_drive(spec, rep)
+    return run_drive(spec, rep, models)
 
 
 class _Tracker:
@@ -216,6 +245,13 @@ def write_drive(out: Path, drive: dict) -> None:
         w.writerow({k: ("" if row.get(k) is None else row.get(k)) for k in ROW_FIELDS})
     _atomic_write(d / "cycles.csv", buf.getvalue())
     _atomic_write(d / "events.json", json.dumps(drive["events"], indent=1))
+    if drive.get("models") is not None:
+        m = d / MODEL_DIR
+        m.mkdir(exist_ok=True)
+        for name, data in drive["models"].items():
+            tmp = m / f".{name}.tmp-{os.getpid()}"
+            tmp.write_bytes(data)
+            os.replace(tmp, m / name)
     _atomic_write(d / "result.json", json.dumps(r, indent=1))      # last: marks it finished
 
 
@@ -436,7 +472,8 @@ class Campaign:
     def __init__(self, kinds, seeds, minutes: float, out, *, workers: int | None = None,
                  address: str | None = None, config_file: str | None = None,
                  stereo_scale: float = 0.5, progress: bool = True, report: bool = True,
-                 command: str = "", shadow_file: str | None = None):
+                 command: str = "", shadow_file: str | None = None,
+                 save_models: bool = False, models_from: str | None = None):
         self.kinds = parse_kinds(kinds) if isinstance(kinds, str) else list(kinds)
         self.seeds = parse_seeds(seeds) if isinstance(seeds, str) else list(seeds)
         if not (isinstance(minutes, (int, float)) and math.isfinite(minutes) and minutes > 0):
@@ -451,7 +488,6 @@ class Campaign:
         self.minutes, self.stereo_scale = float(minutes), float(stereo_scale)
         self.workers = workers if workers is not None else (os.cpu_count() or 1)
         self.address = address
-        self.out = check_out_dir(out)
         self.extra = load_extra_config(config_file)
         self.config_file = config_file
         self.shadow_file = shadow_file
@@ -460,8 +496,50 @@ class Campaign:
         # seed by seed, each seed over the kinds: a campaign stopped early has every kind
         self.specs = [make_spec(k, s, self.minutes, self.stereo_scale, self.extra, self.shadow)
                       for s in self.seeds for k in self.kinds]
+        self.save_models, self.models_from = bool(save_models), models_from
+        self.boot_models: dict[str, dict] = {}     # drive id -> {file name: bytes}
+        if save_models or models_from:
+            self._plan_models()
+        self.out = check_out_dir(out)        # last: a refused campaign leaves no folder
         self.interrupted = False
         self.failed: dict[str, str] = {}
+
+    def _plan_models(self) -> None:
+        """--save-models / --models-from: every drive must run a novelty pipeline, and with
+        --models-from every drive must find its model in that campaign (checked before any
+        drive starts). The spec says both, so a rerun with other models drives again."""
+        import hashlib
+        for sp in self.specs:
+            if not set(sp["config"]["perception"]["pipelines"]) & set(NOVELTY_PIPELINES):
+                raise CampaignError(
+                    f"{'--models-from' if self.models_from else '--save-models'}: drive "
+                    f"{drive_id(sp['kind'], sp['seed'])} runs no novelty model (pipelines "
+                    f"{', '.join(sp['config']['perception']['pipelines'])}); give a --config "
+                    "whose [perception] pipelines has stereo-novelty")
+            if self.save_models:
+                sp["save_models"] = True
+        if not self.models_from:
+            return
+        src = Path(self.models_from).expanduser()
+        if not (src / "drives").is_dir():
+            raise CampaignError(f"--models-from {src}: not a campaign folder (no drives/ in it)")
+        missing = []
+        for sp in self.specs:
+            key = drive_id(sp["kind"], sp["seed"])
+            folder = src / "drives" / key / MODEL_DIR
+            files = sorted(folder.glob("*.npz")) if folder.is_dir() else []
+            if not any(f.name == MODEL_FILE for f in files):
+                missing.append(key)
+                continue
+            models = {f.name: f.read_bytes() for f in files}
+            self.boot_models[key] = models
+            sp["models_from"] = {"folder": str(folder.resolve()), "sha256": {
+                n: hashlib.sha256(b).hexdigest()[:16] for n, b in models.items()}}
+        if missing:
+            raise CampaignError(
+                f"--models-from {src}: no saved model for {len(missing)} of {len(self.specs)} "
+                f"drives ({', '.join(missing[:4])}{', ...' if len(missing) > 4 else ''}); "
+                "drive those scenes and seeds there with --save-models first")
 
     def finished(self) -> dict[str, dict]:
         """The drives already done with these settings (skipped on a rerun)."""
@@ -515,7 +593,9 @@ class Campaign:
             provenance={"command": self.command, "commit": _commit(),
                         "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(t0)),
                         "config_file": self.config_file, "shadow_file": self.shadow_file,
-                        "address": self.address})
+                        "address": self.address, "save_models": self.save_models,
+                        "models_from": None if not self.models_from else
+                        str(Path(self.models_from).expanduser().resolve())})
         if self.failed:
             summary["failed_drives"] = dict(self.failed)
         summary["complete"] = len(results) == len(self.specs)
@@ -547,7 +627,8 @@ class Campaign:
             base = sum(r["simulated_s"] for r in done.values()) / 3600.0
             n_done = len(done)
             try:
-                drive = run_drive(sp, lambda s: prog(n_done, base + s / 3600.0))
+                drive = run_drive(sp, lambda s: prog(n_done, base + s / 3600.0),
+                                  self.boot_models.get(key))
             except FieldguardError:
                 raise
             except Exception as exc:            # a drive's bug: report it, drive the others
@@ -572,7 +653,9 @@ class Campaign:
             tracker = ray.remote(num_cpus=0)(_Tracker).remote()
             task = ray.remote(num_cpus=1, max_retries=0)(_ray_drive)
             nice = os.getpriority(os.PRIO_PROCESS, 0) if hasattr(os, "getpriority") else None
-            pending = {task.remote(sp, tracker, nice): sp for sp in todo}
+            pending = {task.remote(sp, tracker, nice,
+                                   self.boot_models.get(drive_id(sp["kind"], sp["seed"]))): sp
+                       for sp in todo}
             while pending:
                 ready, _ = ray.wait(list(pending), num_returns=1, timeout=2.0)
                 for ref in ready:
@@ -625,6 +708,16 @@ def register(sub) -> None:
                         "--config is) judged on each drive's own inputs every cycle, never "
                         "driving: its stops scored against the same truth, and the false "
                         "stops only one side made (docs/proving-ground.md 'Shadow')")
+    c.add_argument("--save-models", action="store_true",
+                   help="keep each drive's novelty model at its end (saved at the daemon's "
+                        "shutdown, as the box saves it) in DIR/drives/KIND-SEED/models/, for "
+                        "a later campaign's --models-from")
+    c.add_argument("--models-from", metavar="CAMPAIGN",
+                   help="each drive boots with the novelty model that campaign (run with "
+                        "--save-models) saved at the end of its drive of the same scene and "
+                        "seed, as an installed box boots with its saved model (otherwise a "
+                        "drive boots with an empty one); compare the two with "
+                        "`fieldguard campaign-compare`")
     c.add_argument("--stereo-scale", type=float, default=0.5,
                    help="stereo at this fraction of 1280x1024 (default 0.5: 640x512)")
     c.add_argument("--no-report", action="store_true", help="summary.json only, no report.md")
@@ -718,6 +811,7 @@ def cmd_campaign(a) -> int:
     camp = Campaign(a.scene, a.seeds, a.minutes, a.out, workers=a.workers, address=a.address,
                     config_file=a.config, stereo_scale=a.stereo_scale,
                     report=not a.no_report, shadow_file=a.shadow,
+                    save_models=a.save_models, models_from=a.models_from,
                     command="fieldguard campaign " + " ".join(sys.argv[2:]))
     s = camp.run()
     if a.json:

@@ -316,6 +316,12 @@ def write_report(out, summary: dict, images_rel: str = "plots") -> Path:
          f"{'ACCEPTANCE seeds (>= 1000)' if summary['acceptance_seeds'] else 'training seeds (< 1000) included'}",
          f"- {summary['drives']} drives of {summary['minutes_per_drive']} simulated minutes, "
          f"stereo scale {summary['stereo_scale']}",
+         "- the box's boot: " + (
+             f"each drive with the novelty model saved at the end of its drive in "
+             f"`{pv['models_from']}` (as an installed box boots with its saved model)"
+             if pv.get("models_from") else "each drive with an empty novelty model") + (
+             "; each drive's model at its end kept in drives/KIND-SEED/models/"
+             if pv.get("save_models") else ""),
          f"- wall {t['wall_s'] / 60:.1f} min for {t['drives_run']} drives run here "
          f"({t['drives_skipped']} already done), {t['simulated_hours_per_cpu_hour']} simulated "
          f"hours per CPU hour, load average (1 min) {t['loadavg_1min_start_end']} on "

@@ -50,7 +50,8 @@ def _restore_root_logging():
 #    background: tools/soak.py's ~95 s of wall clock, in which the box's own processes use
 #    half a core at nice -10, overlap theirs; the soak test then collects the result.
 SIMULATED = ("test_campaign_shadow.py", "test_laser_false_stops.py", "test_cue.py",
-             "test_campaign_compare.py", "test_laser_ground_probe.py", "test_fuzz_short.py",
+             "test_campaign_compare.py", "test_campaign_models.py", "test_laser_ground_probe.py",
+             "test_fuzz_short.py",
              "test_eval_out.py", "test_rgbd_sim.py", "test_low_obstacles.py", "test_deploy.py",
              "test_canopy.py", "test_why_false_stops.py", "test_sim_scenes.py", "test_sim_loop.py",
              "test_rgbd.py", "test_tilted_laser_probe.py", "test_why_missed.py",
