@@ -260,7 +260,7 @@ def test_interrupted_campaign_writes_the_finished_drives_summary(campaigns, tmp_
     shutil.copytree(base / "local" / "drives", out / "drives")
     (out / "drives" / "stubble-day-2" / "result.json").unlink()
 
-    def interrupted(spec, report=None):          # ^C / SIGTERM during the second drive
+    def interrupted(spec, report=None, models=None):   # ^C / SIGTERM during the second drive
         raise KeyboardInterrupt
     monkeypatch.setattr(campaign, "run_drive", interrupted)
     with pytest.raises(CampaignError, match="interrupted: 1 of 2 drives finished"):
