@@ -169,17 +169,19 @@ def run_drive(spec: dict, report=None, models: dict | None = None) -> dict:
     if report is not None:
         def cb(done, _total):
             report(done / 10.0)
-    config, tmp = spec["config"], None
+    config, shadow, tmp = spec["config"], spec.get("shadow"), None
     if models or spec.get("save_models"):
         tmp = Path(tempfile.mkdtemp(prefix="fieldguard-drive-models-"))
         for name, data in (models or {}).items():
             (tmp / Path(name).name).write_bytes(data)
-        config = deep_merge(config, {"perception": {"stereo-novelty": {
-            "model_state": str(tmp / MODEL_FILE), "model_save_s": 0.0}}})
+        state = {"perception": {"stereo-novelty": {"model_state": str(tmp / MODEL_FILE),
+                                                   "model_save_s": 0.0}}}
+        config = deep_merge(config, state)
+        if shadow is not None:           # the shadow boots with the same model (it never saves)
+            shadow = deep_merge(shadow, state)
     try:
         d = Drive(spec["kind"], spec["seed"], spec["minutes"], config_data=config,
-                  stereo_scale=spec["stereo_scale"], progress=cb,
-                  shadow_config=spec.get("shadow"))
+                  stereo_scale=spec["stereo_scale"], progress=cb, shadow_config=shadow)
         out = d.run()
         if spec.get("save_models"):
             out["models"] = {f.name: f.read_bytes() for f in sorted(tmp.glob("*.npz"))}

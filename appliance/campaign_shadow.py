@@ -37,6 +37,11 @@ class Shadow:
         self.shared = primary_cfg is not None and cfg.perception == primary_cfg.perception
         self.pipelines = ([] if self.shared else
                           [make_pipeline(n, cfg) for n in cfg.perception.pipelines])
+        # its novelty model boots as the daemon's does (a saved model where its config names
+        # one: a campaign's --models-from), so a shadow of the drive's own configuration boots
+        # with the drive's model; it never saves one
+        from appliance import novelty_store
+        novelty_store.load_into(self.pipelines)
         self.optional = set(cfg.perception.optional)
         self.core = DecisionCore(cfg)
         self.last_detections: dict = {}

@@ -99,3 +99,27 @@ def test_models_from_a_campaign_without_them_is_one_clear_error(pair, tmp_path, 
     err = capsys.readouterr().err
     assert rc == 2 and "no saved model" in err and "Traceback" not in err, err
     assert not (tmp_path / "z" / "drives").exists()
+
+
+def test_a_shadow_boots_with_the_model_its_config_names(pair, tmp_path):
+    """With --models-from a drive's shadow gets the same model file in its config
+    (run_drive); the shadow loads it as the daemon does, and never writes it."""
+    from appliance.campaign_drive import deep_merge, drive_config_data
+    from appliance.campaign_shadow import Shadow
+    from appliance.config import parse_config
+    from appliance.daemon import sim_config
+    base = pair[0]
+    f = tmp_path / MODEL_FILE
+    f.write_bytes((base / "saved" / "drives" / "stubble-coverage-3" / MODEL_DIR /
+                   MODEL_FILE).read_bytes())
+    data = drive_config_data("stubble-coverage", 3, stereo_scale=0.25, extra=deep_merge(
+        {"perception": {"pipelines": ["stereo-novelty", "laser"]}},
+        {"perception": {"stereo-novelty": {"model_state": str(f), "model_save_s": 0.0}}}))
+    before = f.read_bytes()
+    sh = Shadow(sim_config(parse_config(data, "<test>"), "stubble-coverage"))
+    try:
+        nov = [p.novelty for p in sh.pipelines if hasattr(p, "novelty")]
+        assert len(nov) == 1 and nov[0].model.size == len(read(f)["x"]) > 0
+    finally:
+        sh.close()
+    assert f.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == [MODEL_FILE]
