@@ -200,6 +200,10 @@ def compare(dir_a, dir_b, reach_extra_m: float | None = None) -> dict:
         "a": str(dir_a), "b": str(dir_b),
         "a_commit": (sa.get("provenance") or {}).get("commit"),
         "b_commit": (sb.get("provenance") or {}).get("commit"),
+        # how each campaign's box booted: None = from an empty novelty model, else the
+        # campaign whose saved models it booted with (fieldguard campaign --models-from)
+        "a_models_from": (sa.get("provenance") or {}).get("models_from"),
+        "b_models_from": (sb.get("provenance") or {}).get("models_from"),
         "minutes_per_drive": sa.get("minutes_per_drive"),
         "acceptance_seeds": all(k[1] >= 1000 for k in both),
         "only_in_a": [f"{k}-{s}" for k, s in sorted(set(da) - set(db))],
@@ -240,7 +244,11 @@ def _first_text(f: dict | None) -> str:
 
 
 def format_compare(c: dict) -> str:
-    lines = [f"A = {c['a']} (commit {c['a_commit']})", f"B = {c['b']} (commit {c['b_commit']})",
+    def boot(side):
+        src = c.get(f"{side}_models_from")
+        return "" if not src else f"; booted with the models of {src}"
+    lines = [f"A = {c['a']} (commit {c['a_commit']}{boot('a')})",
+             f"B = {c['b']} (commit {c['b_commit']}{boot('b')})",
              f"{len(c['drives'])} drives in common, {c['minutes_per_drive']} min each"
              + (" (acceptance seeds)" if c["acceptance_seeds"] else "")]
     for k in ("only_in_a", "only_in_b"):

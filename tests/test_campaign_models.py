@@ -123,3 +123,16 @@ def test_a_shadow_boots_with_the_model_its_config_names(pair, tmp_path):
     finally:
         sh.close()
     assert f.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == [MODEL_FILE]
+
+
+def test_campaign_compare_says_which_campaign_booted_with_saved_models(pair):
+    from appliance.campaign_compare import compare, format_compare
+    base = pair[0]
+    c = compare(base / "saved", base / "booted")
+    assert c["a_models_from"] is None and c["b_models_from"].endswith("saved")
+    head = format_compare(c).splitlines()[:2]
+    assert "booted with" not in head[0] and head[1].endswith(
+        f"; booted with the models of {c['b_models_from']})"), head
+    # the same scenes and seeds, paired drive by drive
+    assert [(d["kind"], d["seed"]) for d in c["drives"]] == [
+        ("stubble-coverage", 3), ("stubble-coverage-night", 3)]
