@@ -39,13 +39,14 @@ def _restore_root_logging():
 # These modules run in simulated time (lock-step daemons, pace 0; CLI tools; an install into
 # a directory; no wall-clock figure asserted, no status socket, no Ray), so sharing the
 # machine changes nothing they check. Every other module (links, devices, the console,
-# services, Ray, the benchmarks: wall-clock deadlines) runs alone, one test at a time; a new
-# module is one of those until it is listed here. Listed slowest first (`--durations=0`,
-# 2026-12-06): the order in which they are handed out.
-#  - `./tools/test.sh` with no arguments (the whole suite, what CI runs) runs them first, as
+# services, Ray, the benchmarks: wall-clock deadlines) runs one test at a time at normal CPU
+# priority; a new module is one of those until it is listed here. Listed slowest first
+# (`--durations=0`, 2026-12-06): the order in which they are handed out.
+#  - `./tools/test.sh` with no arguments (the whole suite, what CI runs) runs them as
 #    `--phase simulated` on pytest-xdist's workers (one per core and one for the soak's test,
-#    which waits; a module stays on one worker: its fixtures are computed once), the soak a
-#    test among them; then the rest as `--phase wall-clock`, alone.
+#    which waits; a module stays on one worker: its fixtures are computed once) at SCHED_IDLE,
+#    the soak a test among them (it takes the normal policy back), and beside them the rest
+#    as `--phase wall-clock`, one test at a time (docs/reliability.md).
 #  - A plain `pytest` (no phase) runs them first too, in one process, with the soak in the
 #    background: tools/soak.py's ~95 s of wall clock, in which the box's own processes use
 #    half a core at nice -10, overlap theirs; the soak test then collects the result.
