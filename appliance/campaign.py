@@ -155,6 +155,14 @@ MODEL_FILE = "novelty.npz"
 NOVELTY_PIPELINES = ("stereo-novelty", "fused")
 
 
+def with_model_state(data: dict, model_file) -> dict:
+    """Config data whose stereo-novelty model persists in ``model_file``: loaded at start,
+    saved at the daemon's shutdown only (a drive's end), as the box keeps its state."""
+    from appliance.campaign_drive import deep_merge
+    return deep_merge(data, {"perception": {"stereo-novelty": {
+        "model_state": str(model_file), "model_save_s": 0.0}}})
+
+
 def run_drive(spec: dict, report=None, models: dict | None = None) -> dict:
     """Drive one spec; ``report(sim_s)`` is called every 30 simulated seconds. ``models``
     ({file name: bytes}, the files of a drive's MODEL_DIR): the box boots with them, as an
@@ -164,7 +172,7 @@ def run_drive(spec: dict, report=None, models: dict | None = None) -> dict:
     import shutil
     import tempfile
 
-    from appliance.campaign_drive import Drive, deep_merge
+    from appliance.campaign_drive import Drive
     cb = None
     if report is not None:
         def cb(done, _total):
@@ -174,11 +182,9 @@ def run_drive(spec: dict, report=None, models: dict | None = None) -> dict:
         tmp = Path(tempfile.mkdtemp(prefix="fieldguard-drive-models-"))
         for name, data in (models or {}).items():
             (tmp / Path(name).name).write_bytes(data)
-        state = {"perception": {"stereo-novelty": {"model_state": str(tmp / MODEL_FILE),
-                                                   "model_save_s": 0.0}}}
-        config = deep_merge(config, state)
+        config = with_model_state(config, tmp / MODEL_FILE)
         if shadow is not None:           # the shadow boots with the same model (it never saves)
-            shadow = deep_merge(shadow, state)
+            shadow = with_model_state(shadow, tmp / MODEL_FILE)
     try:
         d = Drive(spec["kind"], spec["seed"], spec["minutes"], config_data=config,
                   stereo_scale=spec["stereo_scale"], progress=cb, shadow_config=shadow)

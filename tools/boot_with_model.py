@@ -43,11 +43,9 @@ KEYS = ("false_stops", "false_stops_boot", "true_stops", "missed_stops", "collis
 
 
 def one(kind: str, seed: int, minutes: float, extra: dict | None, model: Path) -> dict:
-    from appliance.campaign import make_spec, run_drive
-    from appliance.campaign_drive import deep_merge
-    data = deep_merge(extra or {}, {"perception": {"stereo-novelty": {
-        "model_state": str(model), "model_save_s": 0.0}}})
-    r = run_drive(make_spec(kind, seed, minutes, 0.5, data))["result"]
+    from appliance.campaign import make_spec, run_drive, with_model_state
+    r = run_drive(make_spec(kind, seed, minutes, 0.5, with_model_state(extra or {}, model))
+                  )["result"]
     return {k: r.get(k, 0) for k in KEYS}
 
 
@@ -69,7 +67,8 @@ def main(argv=None) -> int:
                          "files (the night model kept apart) beside the other's model")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
-    from appliance.campaign import CampaignError, load_extra_config, make_spec
+    from appliance.campaign import (NOVELTY_PIPELINES, CampaignError, load_extra_config,
+                                    make_spec)
     try:
         seeds = seeds_of(a.seeds)
     except CampaignError as exc:
@@ -96,7 +95,7 @@ def main(argv=None) -> int:
     except ValueError as exc:                          # an unknown scene, named with the known
         print(f"boot_with_model: error: {exc}", file=sys.stderr)
         return 2
-    if not any(p in ("stereo-novelty", "fused") for p in pipes):
+    if not any(p in NOVELTY_PIPELINES for p in pipes):
         print("boot_with_model: error: the drives must run stereo-novelty (the novelty model "
               "is what is carried over): set [perception] pipelines in --config",
               file=sys.stderr)
