@@ -38,32 +38,19 @@ fi
 #    priority: it used ~75 % of one core alone, the rest of the machine idle (2026-12-06: 240 s
 #    for the first part alone, then 281 s for this one).
 # The soak puts itself back to normal priority (tools/soak.py; it runs at nice -10 in a session
-# of its own). The simulated part's output is printed when both have ended.
+# of its own). The simulated part's output is printed when both have ended (tools/test_parts.sh).
 if ! wait "$warm_pid"; then
   echo "test: compiling the renderer beforehand failed (the workers will): $(tail -3 "$warm/log")" >&2
 fi
 rm -rf "$warm"
 workers=$(( $(nproc 2>/dev/null || echo 1) + 1 ))
 [ "$workers" -gt 5 ] && workers=5
-if chrt --idle 0 true 2>/dev/null; then
-  low=(chrt --idle 0)
-else
-  low=(nice -n 19)            # no chrt: the lowest nice instead
-fi
 echo "test: environment ready after ${SECONDS} s" >&2
-echo "test: the simulated-time modules and the soak on $workers workers (${low[*]}), beside the modules with wall-clock deadlines" >&2
-sim_log=$(mktemp)
-"${low[@]}" .venv/bin/python -m pytest --phase simulated -n "$workers" --dist loadfile \
-  --no-loadscope-reorder -o cache_dir=.pytest_cache/simulated >"$sim_log" 2>&1 &
-sim_pid=$!
-trap 'kill "$sim_pid" 2>/dev/null; rm -f "$sim_log"' EXIT
+echo "test: the simulated-time modules and the soak on $workers workers, beside the modules with wall-clock deadlines" >&2
 rc=0
-.venv/bin/python -m pytest --phase wall-clock || rc=$?
-echo "test: the wall-clock modules ended at ${SECONDS} s; the simulated-time modules:" >&2
-sim_rc=0
-wait "$sim_pid" || sim_rc=$?
-cat "$sim_log"
-if [ "$sim_rc" -ne 0 ]; then rc=$sim_rc; fi
+bash tools/test_parts.sh \
+  "--phase simulated -n $workers --dist loadfile --no-loadscope-reorder -o cache_dir=.pytest_cache/simulated" \
+  "--phase wall-clock" || rc=$?
 echo "test: done after ${SECONDS} s" >&2
 if [ "$rc" -ne 0 ]; then
   echo "test: FAILED (exit $rc): see the failures above" >&2
