@@ -456,6 +456,52 @@ def test_cells_to_match_is_novel_or_any_extra_cue():
         nov.close()
 
 
+@pytest.mark.parametrize("gate", ["off", "all"])
+def test_novelty_gate_off_matches_only_other_cues_and_all_matches_every_cell(gate):
+    from types import SimpleNamespace
+    from appliance.perception.stereo_novelty import (StereoNoveltyConfig,
+                                                     StereoNoveltyPipeline)
+    nov = StereoNoveltyPipeline(StereoNoveltyConfig(novelty_gate=gate), background=False)
+    try:
+        mask = np.zeros((4, 5), bool)
+        mask[1, 1] = True
+        res = SimpleNamespace(mask=mask, affine=None, cell_px=16)
+        cue = np.zeros((4, 5), bool)
+        cue[3, 4] = True
+        out = nov._cells_to_match(res, (80, 64), {"depth": cue})
+        src = nov._source_masks
+        if gate == "off":          # the novel cell is neither matched nor credited to novelty
+            assert out.sum() == 16 * 16 * 255 and out[48:64, 64:80].all()
+            assert not src["novelty"].any()
+        else:                      # everything matched; novelty credited only where it fired
+            assert out.all()
+            assert src["novelty"].sum() == 16 * 16 * 255 and src["novelty"][16:32, 16:32].all()
+        assert src["depth"].sum() == 16 * 16 * 255
+    finally:
+        nov.close()
+
+
+def test_novelty_gate_off_loses_what_only_novelty_saw_and_all_matches_the_whole_frame():
+    course = _sim_frames("stubble-day", 1, start=20)[0]
+    person = next(o for o in course.truth if o["class"] == "person")
+    inp = SensorInputs(course.stereo.stamp_ns, stereo=course.stereo, vehicle=course.vehicle)
+    out = {}
+    for gate in ("on", "off", "all"):
+        # depth cue off: what is matched is novelty's choice alone (or nothing, or everything)
+        nov = _learnt_pipeline(depth_cue="off", novelty_gate=gate)
+        try:
+            out[gate] = nov.process(inp)
+        finally:
+            nov.close()
+    assert _near(out["on"].points_xy, person) > 0
+    assert _near(out["off"].points_xy, person) == 0 and out["off"].debug["boxes"] == 0
+    assert _near(out["all"].points_xy, person) > 0     # (region and full-frame matching
+    # differ a little: 20 points near the person full-frame, 21 in the novel cells' boxes)
+    assert out["all"].debug["stereo_px_fraction"] > 0.9 > out["on"].debug["stereo_px_fraction"]
+    # the model and its mask are the same whatever the gate
+    assert out["off"].debug["novel_fraction"] == out["on"].debug["novel_fraction"] > 0
+
+
 @pytest.mark.parametrize("f,k", [(1, 1), (2, 2), (2, 1), (1, 2), (2, 4), (4, 2)])
 def test_masks_made_at_a_lower_resolution_equal_the_full_resolution_round_trip(f, k):
     """The pipeline makes the matching mask and the boxes' coarse mask from the mask at the

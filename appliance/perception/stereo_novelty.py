@@ -48,6 +48,14 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
                                  "[Lmu amu bmu Lsd asd bsd u v]")
     sigma: float = _f(0.05, lo=1e-4, hi=10.0, doc="kernel width in scaled descriptor units")
     rho: float = _f(1.0, lo=1e-30, hi=1e30, doc="novel when density < rho (eq. 3 units)")
+    novelty_gate: str = _f("on", choices=("on", "off", "all"),
+                           doc="what the novelty mask does (an ablation switch; the model is "
+                               "learnt as always): on = its cells are matched densely (the "
+                               "paper); off = novelty gates nothing (only the depth cue and "
+                               "the learned cue choose cells; no point counts as novelty's); "
+                               "all = every cell is matched (full-frame dense stereo, "
+                               "novelty still credited where it fires). rho cannot switch "
+                               "novelty off (docs/front-end.md known limits)")
     forget: float = _f(0.1, lo=1e-4, hi=0.99, doc="lambda of eqs. 6, 7 (per update)")
     update_every_frames: int = _f(40, lo=1, hi=10000, doc="model update period (paper: 40)")
     # Off by default (twenty-seventh and twenty-eighth sessions): fewer boot-time false stops
@@ -382,7 +390,12 @@ class StereoNoveltyPipeline(Pipeline):
         ``res.cell_px`` grid, or an (H, W) pixel mask). A new cue is one more entry there."""
         W, H = size_wh
         mask = mask_to_camera(res.mask, res.affine, (W, H), res.cell_px)
+        gate = self.options.novelty_gate
+        if gate == "off":
+            mask = np.zeros_like(mask)
         self._source_masks = {"novelty": mask}
+        if gate == "all":
+            mask = np.full_like(mask, 255)
         for name, cue in extra.items():
             if cue is None or not np.any(cue):
                 continue
