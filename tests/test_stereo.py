@@ -497,9 +497,13 @@ def test_novelty_gate_off_loses_what_only_novelty_saw_and_all_matches_the_whole_
     assert _near(out["off"].points_xy, person) == 0 and out["off"].debug["boxes"] == 0
     assert _near(out["all"].points_xy, person) > 0     # (region and full-frame matching
     # differ a little: 20 points near the person full-frame, 21 in the novel cells' boxes)
-    assert out["all"].debug["stereo_px_fraction"] > 0.9 > out["on"].debug["stereo_px_fraction"]
-    # the model and its mask are the same whatever the gate
-    assert out["off"].debug["novel_fraction"] == out["on"].debug["novel_fraction"] > 0
+    # the matcher's work (pixels x disparities searched, over the image's pixels): the whole
+    # frame is several times what the novel cells' boxes cost (measured 4.7 against 1.0)
+    assert out["all"].debug["stereo_px_fraction"] > 3 * out["on"].debug["stereo_px_fraction"]
+    assert out["all"].debug["boxes"] > out["on"].debug["boxes"] > 0
+    # the model still runs and says what is novel, whatever the gate (what it learns can
+    # differ: cells near detected points are kept out of its updates)
+    assert out["off"].debug["novel_fraction"] > 0 and out["all"].debug["novel_fraction"] > 0
 
 
 @pytest.mark.parametrize("f,k", [(1, 1), (2, 2), (2, 1), (1, 2), (2, 4), (4, 2)])
