@@ -149,6 +149,25 @@ class GridConfig:
                                          "view or range, and every return in a cycle without a "
                                          "camera, count as before. [] = off (docs/proving-"
                                          "ground.md 'The laser confirmed by the camera')")
+    hold_blind: bool = _f(False, doc="cell decision: an obstacle cell confirmed near the "
+                                      "front that then lies where no camera pipeline can see "
+                                      "it (under its view, or nearer than its stereo can "
+                                      "range) is held as a confirmed obstacle while it stays "
+                                      "there and ahead of the front, instead of fading: a box "
+                                      "that stopped for a crate 1.5 m ahead must not call "
+                                      "CLEAR because the crate went out of its sight (the "
+                                      "vehicle drove into it). Needs a camera pipeline that "
+                                      "gives a view (stereo-novelty); off = the papers' "
+                                      "fading cells (docs/tracking.md 'Out of sight')")
+    hold_blind_probe_m: float = _f(0.5, lo=0.0, hi=5.0,
+                                   doc="hold_blind: a cell counts as seen when a point this "
+                                       "high above it is observed (the band's floor: what "
+                                       "is lower makes no obstacle point)")
+    hold_blind_range_m: float = _f(3.0, lo=0.0, hi=30.0,
+                                   doc="hold_blind: only cells at most this far ahead of the "
+                                       "front (zones.front_x_m) are held (the near blind "
+                                       "region; farther out, what leaves the view is beside "
+                                       "the path)")
     laser_confirm_radius_m: float = _f(0.3, lo=0.05, hi=2.0,
                                        doc="laser_confirm_by \"points\": a camera point in the "
                                            "same or a neighbouring square of this side")

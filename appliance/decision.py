@@ -22,7 +22,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from appliance.config import Config
-from appliance.fusion import GridFusion, confirmed_points
+from appliance.fusion import GridFusion, confirmed_points, move_with_vehicle
 from appliance.gate import SafetyGate
 from appliance.perception.base import Detections
 from appliance.tracking import Tracker, TrackView
@@ -205,6 +205,13 @@ class DecisionCore:
         self.curvature_1pm = 0.0          # the arc the zones bend along ([zones] follow_turn)
         self.laser_unconfirmed = 0        # laser returns no camera confirmed this cycle
         self.path_refused = ""            # why this cycle's planned path was not used
+        # [grid] hold_blind: cells held out of the cameras' sight (vehicle frame, this cycle),
+        # the next cycle's candidates for holding, their stamp, and whether a camera view
+        # has been seen at all (a laser-only box holds nothing)
+        self.held_xy = np.zeros((0, 2))
+        self._hold_seeds = np.zeros((0, 2))
+        self._hold_ns: int | None = None
+        self._had_camera = False
 
     # below this speed the yaw rate says nothing of the path: the last curvature is kept (a
     # vehicle stopped in a turn drives on along it: its steering has not moved)
@@ -345,8 +352,11 @@ class DecisionCore:
                 slow = self.grid.hit_by(grid_cells, laser_split[0])
                 slow &= ~self.grid.hit_by(grid_cells, np.concatenate(others))
                 conf = ~slow if conf is None else (conf & ~slow)
-            pic = Picture(grid_cells, assess(grid_cells, speed, self.cfg.zones, conf,
-                                             cell_m=g.cell_m, curvature_1pm=kappa),
+            cells = grid_cells
+            if g.hold_blind:
+                cells, conf = self._hold_blind(grid_cells, conf, detections, vehicle, now_ns)
+            pic = Picture(cells, assess(cells, speed, self.cfg.zones, conf,
+                                        cell_m=g.cell_m, curvature_1pm=kappa),
                           speed, grid_cells)
             if self.movers is not None:
                 pic = self._with_movers(pic, detections, vehicle, now_ns)
@@ -362,6 +372,58 @@ class DecisionCore:
                           speed, grid_cells, tracks)
         self.last = pic
         return pic
+
+    def _hold_blind(self, cells: np.ndarray, conf: np.ndarray | None, detections: dict,
+                    vehicle: VehicleState | None, now_ns: int
+                    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """``[grid] hold_blind``: the cells (and their STOP flags) with the held ones added.
+
+        A cell confirmed (a STOP, were it in the stop zone) at most ``hold_blind_range_m``
+        ahead of the front in one cycle is followed in the world as the vehicle moves; in the
+        next cycle, where no camera pipeline observes it (``CameraView.observes``: under the
+        image, or nearer than its stereo ranges, a point ``hold_blind_probe_m`` above it), it
+        is held: a confirmed obstacle cell this cycle, followed again. It ends when a camera
+        sees its place again (then the sensors decide, as for any cell), when it passes behind
+        the front, or when it lies farther ahead than the range. A cycle without any camera
+        view (a camera fault: the loop stops the vehicle for that) keeps every hold."""
+        g, z = self.cfg.grid, self.cfg.zones
+        dt = 0.0 if self._hold_ns is None else (now_ns - self._hold_ns) * 1e-9
+        self._hold_ns = now_ns
+        seeds = move_with_vehicle(self._hold_seeds, dt, vehicle)
+        cams = camera_views(detections)
+        self._had_camera |= bool(cams)
+        lo, hi = z.front_x_m - 0.5 * g.cell_m, z.front_x_m + g.hold_blind_range_m
+        held = np.zeros((0, 2))
+        if len(seeds) and self._had_camera:
+            seeds = seeds[(seeds[:, 0] >= lo) & (seeds[:, 0] <= hi)]
+            if cams and len(seeds):
+                xyz = np.column_stack([seeds, np.full(len(seeds), g.hold_blind_probe_m)])
+                seen = np.zeros(len(seeds), bool)
+                for o in cams:
+                    seen |= o.view.observes(xyz)
+                held = seeds[~seen]
+            else:
+                held = seeds
+        # next cycle's candidates: this cycle's confirmed cells near the front (a margin of
+        # 1 m beyond the range: what moves into it before the next look) and the held ones
+        c = np.asarray(cells, np.float64).reshape(-1, 2)
+        if conf is not None:
+            c = c[np.asarray(conf, bool)]
+        c = c[(c[:, 0] >= lo) & (c[:, 0] <= hi + 1.0)]
+        nxt = np.concatenate([c, held]) if len(held) else c
+        if len(nxt):      # one per grid cell (the first: a confirmed cell before a held one)
+            key = np.floor(nxt / g.cell_m).astype(np.int64)
+            _, first = np.unique(key, axis=0, return_index=True)
+            nxt = nxt[np.sort(first)]
+        self._hold_seeds = nxt
+        self.held_xy = held
+        if not len(held):
+            return cells, conf
+        ix, iy, ok = self.grid.cell_index(held)
+        add = self.grid.centres(ix[ok], iy[ok])
+        out = np.concatenate([np.asarray(cells, np.float64).reshape(-1, 2), add])
+        flags = (np.ones(len(cells), bool) if conf is None else np.asarray(conf, bool))
+        return out, np.concatenate([flags, np.ones(len(add), bool)])
 
     MOVER_STEP_S = 0.1            # movers: the meeting is looked for at these steps
 

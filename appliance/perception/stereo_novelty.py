@@ -722,7 +722,7 @@ class StereoNoveltyPipeline(Pipeline):
         # what this camera saw where, for the laser's returns ([grid] laser_confirm_by): the
         # masks at the descriptor resolution, half a novelty cell of slack up and down
         view = CameraView(self._source_masks, Kd if kd > 1 else K, M, fr.calib.mount.position,
-                          o.max_range_m, slack_px=res.cell_px // 2)
+                          o.max_range_m, slack_px=res.cell_px // 2, min_depth_m=o.min_depth_m)
         return Detections(points_xy=xy, candidates=cands, ground=for_laser, view=view, debug={
             "ground": ground.to_dict(), "candidates": len(cands),
             "boot": None if boot is None else {"candidates": len(boot["candidates"]),

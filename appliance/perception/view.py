@@ -37,7 +37,7 @@ class CameraView:
     ``t``), and the range within which it vouches for what it sees."""
 
     def __init__(self, masks: dict, K: np.ndarray, R: np.ndarray, t: np.ndarray,
-                 max_range_m: float, slack_px: int = 0):
+                 max_range_m: float, slack_px: int = 0, min_depth_m: float = 0.0):
         self.masks = {k: m for k, m in masks.items() if k in MASK_NAMES and m is not None}
         shapes = {m.shape[:2] for m in self.masks.values()}
         if len(shapes) > 1:
@@ -48,6 +48,9 @@ class CameraView:
         self.t = np.asarray(t, np.float64).reshape(3)
         self.max_range_m = float(max_range_m)
         self.slack_px = int(slack_px)
+        # nearer than this along the optical axis the camera's pipeline cannot range a thing
+        # (stereo: the disparity search's near end, min_depth_m)
+        self.min_depth_m = float(min_depth_m)
 
     def project(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(u, v, inside) of vehicle-frame points: pixel coordinates in the masks' size and
@@ -62,6 +65,18 @@ class CameraView:
         h, w = self.shape
         inside &= (u >= 0) & (u < w) & (v >= 0) & (v < h)
         return u, v, inside
+
+    def observes(self, xyz: np.ndarray) -> np.ndarray:
+        """Per vehicle-frame point: could this camera's pipeline have put an obstacle point
+        there this frame? In its image and range (:meth:`project`) and no nearer along the
+        optical axis than ``min_depth_m``. What it does not observe it cannot vouch for
+        (``[grid] hold_blind``)."""
+        p = np.asarray(xyz, np.float64).reshape(-1, 3)
+        _u, _v, inside = self.project(p)
+        if self.min_depth_m > 0 and inside.any():
+            depth = (p - self.t) @ self.R[:, 2]      # along the optical axis (R: optical -> vehicle)
+            inside &= depth >= self.min_depth_m
+        return inside
 
     def look(self, xyz: np.ndarray, names) -> tuple[np.ndarray, np.ndarray]:
         """(inside, raised) per vehicle-frame point: in this camera's view (see ``project``),
