@@ -355,9 +355,19 @@ class DecisionCore:
             cells = grid_cells
             if g.hold_blind:
                 cells, conf = self._hold_blind(grid_cells, conf, detections, vehicle, now_ns)
-            pic = Picture(cells, assess(cells, speed, self.cfg.zones, conf,
-                                        cell_m=g.cell_m, curvature_1pm=kappa),
-                          speed, grid_cells)
+            verdict = assess(cells, speed, self.cfg.zones, conf, cell_m=g.cell_m,
+                             curvature_1pm=kappa)
+            if len(self.held_xy) and verdict.in_stop:
+                # say so when what is stopped for includes a held cell: the vehicle stands
+                # before a thing no camera sees now (the technician's first question)
+                ix, iy, ok = self.grid.cell_index(self.held_xy)
+                held = assess(self.grid.centres(ix[ok], iy[ok]), speed, self.cfg.zones,
+                              cell_m=g.cell_m, curvature_1pm=kappa)
+                if held.in_stop:
+                    verdict = replace(verdict, stop_reason=(
+                        f"obstacle {held.nearest_m:.1f} m ahead in the stop zone "
+                        f"({verdict.stop_len_m:.1f} m), held out of the cameras' sight"))
+            pic = Picture(cells, verdict, speed, grid_cells)
             if self.movers is not None:
                 pic = self._with_movers(pic, detections, vehicle, now_ns)
         else:

@@ -75,6 +75,9 @@ def test_a_crate_stopped_for_and_then_out_of_sight_is_held_until_the_vehicle_mov
     states = [d.cycle(_cam(), speed=1.0)] + [d.cycle(_cam()) for _ in range(150)]
     if hold:
         assert set(states) == {"STOP"}                       # 15 s: until the driver acts
+        why = d.core.last.verdict.stop_reason            # the held cell's centre: 0.85 m
+        assert why.endswith(" m ahead in the stop zone (2.0 m), held out of the cameras' sight")
+        assert abs(float(why.split()[1]) - 0.85) <= 0.051
         assert len(d.core.held_xy) == 1
         assert abs(d.core.held_xy[0, 0] - 3.45) < 0.06       # where the crate is
     else:                                                    # the papers' fading cells
