@@ -163,6 +163,13 @@ class GridConfig:
                                    doc="hold_blind: a cell counts as seen when a point this "
                                        "high above it is observed (the band's floor: what "
                                        "is lower makes no obstacle point)")
+    hold_blind_min_evidence: float = _f(0.0, lo=0.0, hi=100.0,
+                                        doc="hold_blind: only a confirmed cell whose grid "
+                                            "evidence reached this in the cycle before it went "
+                                            "out of sight is held (1.75: hit in three cycles "
+                                            "running; a stubble blip at the near edge of the "
+                                            "view is seen in one or two); 0 = any confirmed "
+                                            "cell")
     hold_blind_range_m: float = _f(3.0, lo=0.0, hi=30.0,
                                    doc="hold_blind: only cells at most this far ahead of the "
                                        "front (zones.front_x_m) are held (the near blind "

@@ -420,6 +420,8 @@ class DecisionCore:
         if conf is not None:
             c = c[np.asarray(conf, bool)]
         c = c[(c[:, 0] >= lo) & (c[:, 0] <= hi + 1.0)]
+        if g.hold_blind_min_evidence > 0 and len(c):
+            c = c[self.grid.evidence_at(c) >= g.hold_blind_min_evidence - 1e-6]
         nxt = np.concatenate([c, held]) if len(held) else c
         if len(nxt):      # one per grid cell (the first: a confirmed cell before a held one)
             key = np.floor(nxt / g.cell_m).astype(np.int64)

@@ -154,3 +154,16 @@ def test_points_move_with_the_vehicle_as_the_grids_cells_do(x, y, speed, yaw_rat
     assert inside[0] and len(occ) == 1
     # the grid rounds its moved cell to the nearest centre: within half a cell each way
     assert np.all(np.abs(occ[0] - moved[0]) <= 0.5 * g.cfg.cell_m + 1e-6)
+
+
+def test_with_a_minimum_evidence_only_what_was_seen_in_cycles_running_is_held():
+    cfg = _cfg(hold_blind_min_evidence=1.75)
+    # seen in one cycle (a blip at the near edge), then out of sight: not held
+    d = Drive(cfg)
+    d.cycle(_cam(3.55), speed=1.0)
+    assert d.cycle(_cam(), speed=1.0) == "CLEAR" and len(d.core.held_xy) == 0
+    # seen in three cycles running (evidence 1 + 0.5 + 0.25), then out of sight: held
+    d = Drive(cfg)
+    for x in (3.75, 3.65, 3.55):
+        d.cycle(_cam(x), speed=1.0)
+    assert d.cycle(_cam(), speed=1.0) == "STOP" and len(d.core.held_xy) == 1
