@@ -86,7 +86,7 @@ def test_a_crate_stopped_for_and_then_out_of_sight_is_held_until_the_vehicle_mov
 
 def test_what_the_camera_sees_again_is_left_to_the_camera():
     d = Drive(_cfg())
-    assert d.cycle(_cam(4.4)) == "STOP"                      # 1.8 m ahead (in the 2 m stop zone at rest), ranged
+    assert d.cycle(_cam(4.4)) == "STOP"          # 1.8 m ahead (the stop zone at rest: 2 m), ranged
     # still in view and ranged, no longer matched (a phantom of one frame): it fades
     assert d.cycle(_cam()) == "CLEAR" and len(d.core.held_xy) == 0
 

@@ -112,8 +112,9 @@ def summary(rows: list[tuple], near_m: float = 6.0) -> str:
         ok = (c["support"] >= s) & (c["hspan"] >= d) & (c["nx2"] >= n)
         dog_f = set(c["frame"][ok & (c["is_dog"] == 1)])
         field_f = set(c["frame"][ok & (c["is_dog"] == 0)])
+        near_share = np.mean([f in dog_f for f in near]) if len(near) else 0.0
         out.append(f"  support >= {s} spread >= {d} nx2 >= {n}: "
-                   f"{len(dog_f) / len(frames):.2f} ({np.mean([f in dog_f for f in near]) if len(near) else 0:.2f})"
+                   f"{len(dog_f) / len(frames):.2f} ({near_share:.2f})"
                    f" | {len(field_f) / len(frames):.3f}")
     return "\n".join(out)
 

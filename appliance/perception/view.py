@@ -74,7 +74,7 @@ class CameraView:
         p = np.asarray(xyz, np.float64).reshape(-1, 3)
         _u, _v, inside = self.project(p)
         if self.min_depth_m > 0 and inside.any():
-            depth = (p - self.t) @ self.R[:, 2]      # along the optical axis (R: optical -> vehicle)
+            depth = (p - self.t) @ self.R[:, 2]      # along the optical axis
             inside &= depth >= self.min_depth_m
         return inside
 
