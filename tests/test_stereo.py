@@ -436,16 +436,22 @@ def test_depth_cue_sends_the_stubble_coloured_drum_to_dense_stereo():
     assert out["off"].debug["cue_cells"] == {}
 
 
-def test_cells_to_match_is_novel_or_any_extra_cue():
+def _one_novel_cell_and_one_cue_cell():
+    """A 4 x 5 grid of 16 px cells (80 x 64 px): novelty's result with cell (1, 1) novel,
+    and a cue's cell mask with cell (3, 4) raised."""
     from types import SimpleNamespace
+    mask = np.zeros((4, 5), bool)
+    mask[1, 1] = True
+    cue = np.zeros((4, 5), bool)
+    cue[3, 4] = True
+    return SimpleNamespace(mask=mask, affine=None, cell_px=16), cue
+
+
+def test_cells_to_match_is_novel_or_any_extra_cue():
     from appliance.perception.stereo_novelty import StereoNoveltyPipeline
     nov = StereoNoveltyPipeline(background=False)
     try:
-        mask = np.zeros((4, 5), bool)
-        mask[1, 1] = True
-        res = SimpleNamespace(mask=mask, affine=None, cell_px=16)
-        cue = np.zeros((4, 5), bool)
-        cue[3, 4] = True
+        res, cue = _one_novel_cell_and_one_cue_cell()
         out = nov._cells_to_match(res, (80, 64), {"depth": cue, "none": None})
         assert out.shape == (64, 80)
         assert out[16:32, 16:32].all() and out[48:64, 64:80].all()
@@ -458,16 +464,11 @@ def test_cells_to_match_is_novel_or_any_extra_cue():
 
 @pytest.mark.parametrize("gate", ["off", "all"])
 def test_novelty_gate_off_matches_only_other_cues_and_all_matches_every_cell(gate):
-    from types import SimpleNamespace
     from appliance.perception.stereo_novelty import (StereoNoveltyConfig,
                                                      StereoNoveltyPipeline)
     nov = StereoNoveltyPipeline(StereoNoveltyConfig(novelty_gate=gate), background=False)
     try:
-        mask = np.zeros((4, 5), bool)
-        mask[1, 1] = True
-        res = SimpleNamespace(mask=mask, affine=None, cell_px=16)
-        cue = np.zeros((4, 5), bool)
-        cue[3, 4] = True
+        res, cue = _one_novel_cell_and_one_cue_cell()
         out = nov._cells_to_match(res, (80, 64), {"depth": cue})
         src = nov._source_masks
         if gate == "off":          # the novel cell is neither matched nor credited to novelty
