@@ -39,8 +39,9 @@ def _cam(*xs, y=0.0):
 
 
 def _cfg(hold=True, **grid):
+    # any confirmed cell is held here (the default asks for evidence 1.75, tested below)
     return parse_config({"grid": {"hold_blind": hold, "occupied_at": 1.0, "stop_recur": 0.0,
-                                  **grid}}, "<t>")
+                                  "hold_blind_min_evidence": 0.0, **grid}}, "<t>")
 
 
 class Drive:
@@ -157,6 +158,7 @@ def test_points_move_with_the_vehicle_as_the_grids_cells_do(x, y, speed, yaw_rat
 
 
 def test_with_a_minimum_evidence_only_what_was_seen_in_cycles_running_is_held():
+    assert GridConfig().hold_blind and GridConfig().hold_blind_min_evidence == 1.75  # defaults
     cfg = _cfg(hold_blind_min_evidence=1.75)
     # seen in one cycle (a blip at the near edge), then out of sight: not held
     d = Drive(cfg)
