@@ -209,6 +209,7 @@ class DecisionCore:
         # the next cycle's candidates for holding, their stamp, and whether a camera view
         # has been seen at all (a laser-only box holds nothing)
         self.held_xy = np.zeros((0, 2))
+        self._held_cells = np.zeros((0, 2))    # ... as the grid cells' centres
         self._hold_seeds = np.zeros((0, 2))
         self._hold_ns: int | None = None
         self._had_camera = False
@@ -357,12 +358,11 @@ class DecisionCore:
                 cells, conf = self._hold_blind(grid_cells, conf, detections, vehicle, now_ns)
             verdict = assess(cells, speed, self.cfg.zones, conf, cell_m=g.cell_m,
                              curvature_1pm=kappa)
-            if len(self.held_xy) and verdict.in_stop:
+            if len(self._held_cells) and verdict.in_stop:
                 # say so when what is stopped for includes a held cell: the vehicle stands
                 # before a thing no camera sees now (the technician's first question)
-                ix, iy, ok = self.grid.cell_index(self.held_xy)
-                held = assess(self.grid.centres(ix[ok], iy[ok]), speed, self.cfg.zones,
-                              cell_m=g.cell_m, curvature_1pm=kappa)
+                held = assess(self._held_cells, speed, self.cfg.zones, cell_m=g.cell_m,
+                              curvature_1pm=kappa)
                 if held.in_stop:
                     verdict = replace(verdict, stop_reason=(
                         f"obstacle {held.nearest_m:.1f} m ahead in the stop zone "
@@ -429,10 +429,10 @@ class DecisionCore:
             nxt = nxt[np.sort(first)]
         self._hold_seeds = nxt
         self.held_xy = held
-        if not len(held):
-            return cells, conf
         ix, iy, ok = self.grid.cell_index(held)
-        add = self.grid.centres(ix[ok], iy[ok])
+        add = self._held_cells = self.grid.centres(ix[ok], iy[ok])
+        if not len(add):
+            return cells, conf
         out = np.concatenate([np.asarray(cells, np.float64).reshape(-1, 2), add])
         flags = (np.ones(len(cells), bool) if conf is None else np.asarray(conf, bool))
         return out, np.concatenate([flags, np.ones(len(add), bool)])
