@@ -55,9 +55,9 @@ def test_unplugged_laser_stops_within_two_cycles_of_its_timeout_and_recovers():
         d.shutdown()
 
 
-def _detoured():
+def _stopped_before_an_obstacle():
     """stubble-day 0 driven with a perfect box until it stops before the first obstacle on
-    the path, then held at STOP 6 s: the driver has steered round (the field, its vehicle)."""
+    the path (the field, its vehicle)."""
     f = SimField("stubble-day", 0, sensors=("laser",))
     v = f.vehicle
     for _ in range(200):
@@ -65,9 +65,50 @@ def _detoured():
         if v.speed == 0.0:
             break
     assert v.clearance_ahead() < 6.0
+    return f, v
+
+
+def _detoured(trace=None):
+    """...then held at STOP until the driver has steered round it (5 s, then his manoeuvre:
+    the box's STOP is not obeyed while he drives). ``trace`` gets (pose, speed, yaw rate)
+    every 0.1 s step of the manoeuvre."""
+    f, v = _stopped_before_an_obstacle()
     for _ in range(60):
         f.step(0.1, GateState.STOP)
+        if v.detours:
+            break
+    assert v.detours == 1 and v.stats()["manoeuvre"] == "back"
+    for _ in range(400):
+        before = v.pose()
+        f.step(0.1, GateState.STOP)
+        if trace is not None:
+            trace.append((before, v.pose(), v.speed, v.yaw_rate))
+        if v.stats()["manoeuvre"] is None:
+            break
+    assert v.stats()["manoeuvre"] is None
     return f, v
+
+
+def test_the_driver_backs_up_and_steers_round_and_the_box_odometry_sees_all_of_it():
+    """The detour is driven, not a jump: he backs up (a negative speed), then steers out along
+    an S, heading where he goes. Dead reckoning from the speed and yaw rate the box is given
+    follows the true pose to a few centimetres, so what the box stopped for moves in its grid
+    as it does in the world (before, the vehicle was put 3 m to the side with no motion at
+    all, and the obstacle stayed in front of the box's grid)."""
+    trace = []
+    f, v = _detoured(trace)
+    assert min(sp for _, _, sp, _ in trace) < -0.5              # it backed up
+    assert max(abs(w) for _, _, _, w in trace) > 0.2             # and turned
+    (x, y, yaw), _, _, _ = trace[0]
+    worst = 0.0
+    for (_, after, sp0, w), prev in zip(trace, [trace[0][2]] + [t[2] for t in trace[:-1]]):
+        d = 0.5 * (prev + sp0) * 0.1
+        yaw_mid = yaw + 0.5 * w * 0.1
+        x, y, yaw = x + d * math.cos(yaw_mid), y + d * math.sin(yaw_mid), yaw + w * 0.1
+        worst = max(worst, math.hypot(x - after[0], y - after[1]),
+                    2.0 * abs(math.remainder(yaw - after[2], 2 * math.pi)))
+    assert worst < 0.1, worst
+    assert v.collisions == 0 and abs(v.offset_m) in (3.0, 6.0) and v.clearance_ahead() > 6.0
 
 
 def test_driver_takes_over_at_a_real_obstacle_and_overrides_a_false_stop():

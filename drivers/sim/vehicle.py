@@ -8,8 +8,13 @@ and counts collisions.
   pass through an obstacle it has already hit, so one crash does not end a run).
 - Operator takeover (``detour_after_s``, stubble scenes): held at STOP for that long before a
   REAL obstacle (within ``detour_trigger_m`` of the front, from the world, not from the box),
-  the driver takes over and puts the vehicle ``detour_offset_m`` to the left of its path, as if
-  he had backed up and steered round; once past, the driver steers back onto the path along a
+  the driver takes over and drives round it: he backs up along the path (as far as the way
+  behind is free) far enough to steer out, then steers out ``detour_offset_m`` to the side
+  along a smooth S at the slow speed, heading where he goes (`_manoeuvre_step`). The box's
+  command is not obeyed while he does, and its odometry sees every metre of it (a negative
+  speed while backing, the yaw rate of the S): until 2026-12 the vehicle was put beside its
+  path at once, with no motion the box could see, so what the box had stopped for stayed in
+  front of it in the box's grid. Once past, the driver steers back onto the path along a
   smooth S, heading where it goes (the gyro sees it: `_ease_back`). A long
   run can go on after a correct stop; a FALSE stop (nothing really ahead) is never taken over,
   Counted in ``stats()['detours']``. Where there is no room to steer round (a greenhouse lane,
@@ -50,6 +55,8 @@ class Vehicle:
         self.heading_off = 0.0         # heading off the path's (rad, left positive): easing back
         self._ease: list[float] | None = None   # easing back: [offset it started from, progress]
         self._detour_until_s: float | None = None
+        # the driver's manoeuvre round a real obstacle (None: the box's command is obeyed)
+        self._manoeuvre: dict | None = None
         self._held_s = 0.0
         self.detours = 0
         self.cleared: list[str] = []          # obstacles the driver took out of the way
@@ -203,7 +210,9 @@ class Vehicle:
         sc = self.scene
         target = {GateState.CLEAR: sc.cruise_mps, GateState.SLOW: sc.slow_mps,
                   GateState.STOP: 0.0}[self.command]
-        if self._override_until_s is not None:
+        if self._manoeuvre is not None:               # the driver drives, not the box
+            target = self._manoeuvre_target()
+        elif self._override_until_s is not None:
             if self.s < self._override_until_s and self.clearance_ahead() > self.detour_trigger_m:
                 target = max(target, sc.slow_mps)
             else:
@@ -211,10 +220,10 @@ class Vehicle:
         if self.finished:
             target = 0.0
         v0 = self.speed
-        if target < v0:
-            v1 = max(target, v0 - self.decel_mps2 * dt_s)
-        else:
-            v1 = min(target, v0 + self.accel_mps2 * dt_s)
+        if target < v0:          # braking (forward) or speeding up backwards
+            v1 = max(target, v0 - (self.decel_mps2 if v0 > 0 else self.accel_mps2) * dt_s)
+        else:                    # speeding up (forward) or braking backwards
+            v1 = min(target, v0 + (self.decel_mps2 if v0 < 0 else self.accel_mps2) * dt_s)
         travel = 0.5 * (v0 + v1) * dt_s
         ds = travel * math.cos(self.heading_off)          # along the path (less while easing back)
         self.s += ds
@@ -222,13 +231,18 @@ class Vehicle:
             self.s = self.path_length_m
             self.finished = True
             v1 = 0.0
+        if self.s < 0.0:                                  # backed up to the route's start
+            self.s, v1 = 0.0, 0.0
         self.speed = v1
-        self.distance_m += travel
+        self.distance_m += abs(travel)
         self.time_s += dt_s
-        if self.speed < 0.05:
+        if abs(self.speed) < 0.05:
             self.stopped_s += dt_s
         heading_before = self.heading_off
-        self._operator(dt_s, ds)
+        if self._manoeuvre is not None:
+            self._manoeuvre_step(ds)
+        else:
+            self._operator(dt_s, ds)
         # what a gyro would read: the path's turning and the driver's steering back onto it
         self.yaw_rate = self.speed * self._curvature() + (
             (self.heading_off - heading_before) / dt_s if dt_s > 0 else 0.0)
@@ -299,11 +313,71 @@ class Vehicle:
                 best, best_clear = off, c
             if c > 3 * self.detour_trigger_m:
                 break
-        self.offset_m = best
+        self.offset_m = here
+        if best == here:                    # nowhere better to go: he waits (as before)
+            self._held_s = 0.0
+            return
+        # back up far enough to steer out along an S of DETOUR_M_PER_M a metre of offset that
+        # ends DETOUR_CLEAR_M short of the obstacle (a driver's full lock at walking pace)
+        length = self.DETOUR_M_PER_M * abs(best - here)
+        back = max(0.0, length + self.DETOUR_CLEAR_M - ahead)
+        self._manoeuvre = {"phase": "back", "to_s": max(0.0, self.s - back), "o0": here,
+                           "o1": best, "obstacle_s": self.s + ahead, "u": 0.0, "length": length}
         self.heading_off, self._ease = 0.0, None
         self._detour_until_s = self.s + ahead + self.scene.footprint[1] + 6.0
         self.detours += 1
         self._held_s = 0.0
+
+    DETOUR_M_PER_M = 2.0    # steering out takes 2 m of path per metre of offset (steepest 37 deg)
+    DETOUR_CLEAR_M = 1.0    # ...and ends this far short of the obstacle
+    REVERSE_MPS = 0.8       # backing up
+
+    def _free_behind(self, gap_m: float = 1.0, corridor_margin_m: float = 0.3) -> bool:
+        """Nothing within ``gap_m`` behind the vehicle's rear (the driver looks round)."""
+        rear, _, width = self.scene.footprint
+        for k, o in enumerate(self.scene.world.obstacles):
+            if o.id in self.obstacles_hit:
+                continue
+            p = self.footprint_in_vehicle(k)
+            if np.any((np.abs(p[:, 1]) <= width / 2 + corridor_margin_m) &
+                      (p[:, 0] < -rear + 0.5) & (p[:, 0] >= -rear - gap_m)):
+                return False
+        return True
+
+    def _manoeuvre_target(self) -> float:
+        """The speed the driver wants in his manoeuvre: back up at REVERSE_MPS, braking to rest
+        where the backing ends; then out at the slow speed."""
+        m = self._manoeuvre
+        if m["phase"] == "back":
+            left = self.s - m["to_s"]
+            brake = self.speed * self.speed / (2.0 * self.decel_mps2)
+            return 0.0 if left <= brake + 0.02 else -self.REVERSE_MPS
+        return self.scene.slow_mps
+
+    def _manoeuvre_step(self, ds: float) -> None:
+        """Backing: ends at rest where it was to end (or where the way behind is no longer
+        free); then the S out to the offset chosen, heading along it (as ``_ease_back``), over
+        what is left before the obstacle if the backing was cut short."""
+        m = self._manoeuvre
+        if m["phase"] == "back":
+            cut = self.speed < -0.05 and not self._free_behind()
+            if cut:
+                self.speed = 0.0                  # he stops (a hard stop at walking pace)
+            if abs(self.speed) < 1e-6 and (cut or self.s - m["to_s"] <= 0.1 or self.s <= 0.0):
+                # obstacle_s is where the front stood + what was ahead of it: the front's room
+                room = m["obstacle_s"] - self.s - self.DETOUR_CLEAR_M
+                m["length"] = max(1.0, min(m["length"], room))
+                m["phase"] = "out"
+            return
+        o0, o1, length = m["o0"], m["o1"], m["length"]
+        u = min(1.0, m["u"] + max(ds, 0.0) / length)
+        m["u"] = u
+        self.offset_m = o0 + (o1 - o0) * (3.0 * u * u - 2.0 * u ** 3)
+        self.heading_off = math.atan((o1 - o0) * 6.0 * u * (1.0 - u) / length)
+        if u >= 1.0:
+            self.offset_m, self.heading_off = o1, 0.0
+            self._manoeuvre = None
+            self._held_s = 0.0
 
     def _clear_nearest(self, corridor_margin_m: float = 0.3) -> None:
         """Take the nearest obstacle in the corridor ahead out of the world (moved 10 km away:
@@ -341,6 +415,7 @@ class Vehicle:
             "cleared": list(self.cleared),
             "overrides": self.overrides,
             "offset_m": round(self.offset_m, 2),
+            "manoeuvre": None if self._manoeuvre is None else self._manoeuvre["phase"],
             "clearance_m": round(min(self.clearance_ahead(), 999.0), 2),
             "path_length_m": round(self.path_length_m, 1),
         }
