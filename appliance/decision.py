@@ -41,6 +41,8 @@ class Picture:
     speed_mps: float
     grid_cells_xy: np.ndarray             # the fusion grid's occupied cells
     tracks: list[TrackView] = field(default_factory=list)   # every track (confirmed flag)
+    # [grid] hold_blind: the cells (among cells_xy) held out of the cameras' sight this cycle
+    held_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
     @property
     def objects(self) -> list[TrackView]:
@@ -367,7 +369,7 @@ class DecisionCore:
                     verdict = replace(verdict, stop_reason=(
                         f"obstacle {held.nearest_m:.1f} m ahead in the stop zone "
                         f"({verdict.stop_len_m:.1f} m), held out of the cameras' sight"))
-            pic = Picture(cells, verdict, speed, grid_cells)
+            pic = Picture(cells, verdict, speed, grid_cells, held_xy=self._held_cells)
             if self.movers is not None:
                 pic = self._with_movers(pic, detections, vehicle, now_ns)
         else:

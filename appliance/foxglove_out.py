@@ -38,6 +38,7 @@ STATE_SCHEMA = {
                    "speed_limit_mps": {"type": ["number", "null"]},
                    "faults": {"type": "array", "items": {"type": "string"}},
                    "occupied_cells": {"type": "integer"},
+                   "held_cells": {"type": "integer"},
                    "tracks": {"type": "integer"}}}
 VEHICLE_SCHEMA = {
     "title": "fieldguard.Vehicle", "type": "object",
@@ -146,6 +147,7 @@ class FoxgloveChannels:
                         "cycle": res.index, "nearest_m": out.nearest_m,
                         "speed_limit_mps": out.speed_limit_mps, "faults": list(res.faults),
                         "occupied_cells": int(len(res.cells_xy)),
+                        "held_cells": int(len(getattr(res, "held_xy", ()))),
                         "tracks": sum(1 for t in tracks if t.get("confirmed", True))},
                        log_time=t_ns)
         self._count("/state")

@@ -48,6 +48,7 @@ class CycleResult:
     on_time: bool
     inputs: SensorInputs | None = None
     tracks: list = field(default_factory=list)    # appliance.tracking.TrackView, every track
+    held_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))   # [grid] hold_blind
 
 
 def run_pipeline(p, inputs: SensorInputs, what: str = "pipeline") -> tuple:
@@ -217,8 +218,10 @@ class ApplianceLoop:
             picture = None
         if picture is None:
             cells, verdict, tracks = np.zeros((0, 2), np.float32), None, []
+            held = np.zeros((0, 2))
         else:
             cells, verdict, tracks = picture.cells_xy, picture.verdict, picture.tracks
+            held = picture.held_xy
         mark("fusion", t0, w0)
 
         # ---- gate ----
@@ -264,7 +267,7 @@ class ApplianceLoop:
             self.overruns += 1
         self.cycles += 1
         res = CycleResult(self.cycles, now, out, faults, verdict, cells, detections, stage_ms,
-                          wall_ms, skipped, sent_all, on_time, inputs, tracks)
+                          wall_ms, skipped, sent_all, on_time, inputs, tracks, held)
         with self._lock:
             self.last = res
         for cb in self.on_cycle:

@@ -114,6 +114,7 @@ def camera_panel(res) -> np.ndarray | None:
 
 
 TRACK_BGR = (255, 160, 40)
+HELD_BGR = (255, 60, 255)
 
 
 def track_label(t) -> str:
@@ -212,10 +213,20 @@ def grid_panel(res, evidence: np.ndarray, cfg: Config) -> np.ndarray:
             end = px(t.x_m + t.vx_mps, t.y_m + t.vy_mps)
             cv2.arrowedLine(img, px(t.x_m, t.y_m), end, TRACK_BGR, 1, tipLength=0.3)
         _label(img, track_label(t), (b[0] + 4, a[1] + 4), 0.38, TRACK_BGR)
+    # held out of the cameras' sight ([grid] hold_blind): a magenta square round each cell
+    held = np.asarray(getattr(res, "held_xy", np.zeros((0, 2))), np.float64).reshape(-1, 2)
+    r = max(2, int(round(ppm * g.cell_m * 0.75)))
+    for x, y in held:
+        if g.x_min_m <= x <= x_max and -half <= y <= half:
+            u, v = px(x, y)
+            cv2.rectangle(img, (u - r, v - r), (u + r, v + r), HELD_BGR, 2)
     # vehicle
     cv2.rectangle(img, px(f, 0.75), px(min(0.0, f - 2.6), -0.75), (220, 220, 220), -1)
     _label(img, f"grid: stop zone {stop:.1f} m at {speed:.1f} m/s, slow +{z.slow_extra_m:.0f} m",
            (8, 20), 0.5)
+    if len(held):
+        _label(img, f"magenta: {len(held)} cells held out of the cameras' sight", (8, 40),
+               0.45, HELD_BGR)
     return img
 
 
