@@ -111,6 +111,36 @@ def test_the_driver_backs_up_and_steers_round_and_the_box_odometry_sees_all_of_i
     assert v.collisions == 0 and abs(v.offset_m) in (3.0, 6.0) and v.clearance_ahead() > 6.0
 
 
+def test_the_driver_does_not_steer_out_where_the_way_out_is_blocked():
+    """He looks before he goes: an obstacle where the S out to one side would pass makes him
+    take another (never a collision of his, which the campaign would count against the box)."""
+    f, v = _stopped_before_an_obstacle()
+    here, ahead = v.offset_m, v.clearance_ahead()
+    d = v.detour_offset_m
+    assert v._way_out_free(here, here - 2 * d, ahead)        # the side he takes on this field
+    # a drum where the vehicle would stand halfway along that S
+    length, back = v._way_out(here, here - 2 * d, ahead)
+    s0 = v.s
+    v.s, v.offset_m = max(0.0, s0 - back) + 0.5 * length, here - d
+    x, y, _ = v.pose()
+    v.s, v.offset_m = s0, here
+    drum = next(o for o in f.world.obstacles if o.shape == "cylinder")
+    f.world.obstacles.append(dataclasses.replace(drum, id="blocker", x=x, y=y, vx_mps=0.0,
+                                                 vy_mps=0.0))
+    v._footprints.append(v._footprint_points(f.world.obstacles[-1]))
+    assert not v._way_out_free(here, here - 2 * d, ahead)
+    for _ in range(60):
+        f.step(0.1, GateState.STOP)
+        if v.detours:
+            break
+    assert v.detours == 1 and v._manoeuvre["o1"] != here - 2 * d
+    for _ in range(400):
+        f.step(0.1, GateState.STOP)
+        if v.stats()["manoeuvre"] is None:
+            break
+    assert v.collisions == 0 and v.offset_m != here - 2 * d
+
+
 def test_driver_takes_over_at_a_real_obstacle_and_overrides_a_false_stop():
     f, v = _detoured()
     assert v.detours == 1 and abs(v.offset_m) > 0 and v.clearance_ahead() > 6.0

@@ -309,18 +309,15 @@ class Vehicle:
         for off in (here + d, here - d, here + 2 * d, here - 2 * d):
             self.offset_m = off
             c = self.clearance_ahead()
-            if c > best_clear + 1e-6:
+            self.offset_m = here
+            if c > best_clear + 1e-6 and self._way_out_free(here, off, ahead):
                 best, best_clear = off, c
-            if c > 3 * self.detour_trigger_m:
+            if c > 3 * self.detour_trigger_m and best == off:
                 break
-        self.offset_m = here
         if best == here:                    # nowhere better to go: he waits (as before)
             self._held_s = 0.0
             return
-        # back up far enough to steer out along an S of DETOUR_M_PER_M a metre of offset that
-        # ends DETOUR_CLEAR_M short of the obstacle (a driver's full lock at walking pace)
-        length = self.DETOUR_M_PER_M * abs(best - here)
-        back = max(0.0, length + self.DETOUR_CLEAR_M - ahead)
+        length, back = self._way_out(here, best, ahead)
         self._manoeuvre = {"phase": "back", "to_s": max(0.0, self.s - back), "o0": here,
                            "o1": best, "obstacle_s": self.s + ahead, "u": 0.0, "length": length}
         self.heading_off, self._ease = 0.0, None
@@ -331,6 +328,35 @@ class Vehicle:
     DETOUR_M_PER_M = 2.0    # steering out takes 2 m of path per metre of offset (steepest 37 deg)
     DETOUR_CLEAR_M = 1.0    # ...and ends this far short of the obstacle
     REVERSE_MPS = 0.8       # backing up
+
+    def _way_out(self, here: float, off: float, ahead: float) -> tuple[float, float]:
+        """(length of the S out, how far to back up first): the S takes DETOUR_M_PER_M of path
+        a metre of offset and ends DETOUR_CLEAR_M short of the obstacle (a driver's full lock
+        at walking pace)."""
+        length = self.DETOUR_M_PER_M * abs(off - here)
+        return length, max(0.0, length + self.DETOUR_CLEAR_M - ahead)
+
+    def _way_out_free(self, here: float, off: float, ahead: float, samples: int = 16) -> bool:
+        """Would the S out to ``off`` (after backing up for it) touch an obstacle? The driver
+        looks before he goes: poses along the S, the footprint 0.1 m wider all round."""
+        length, back = self._way_out(here, off, ahead)
+        s0, o_was, h_was = self.s, self.offset_m, self.heading_off
+        try:
+            start = max(0.0, s0 - back)
+            for u in np.linspace(0.0, 1.0, samples):
+                self.s = start + u * length
+                self.offset_m = here + (off - here) * (3.0 * u * u - 2.0 * u ** 3)
+                self.heading_off = math.atan((off - here) * 6.0 * u * (1.0 - u) / length)
+                x, y, _ = self.pose()
+                for k, o in enumerate(self.scene.world.obstacles):
+                    if o.id in self.obstacles_hit or \
+                            math.hypot(o.x - x, o.y - y) > o.radius + 4.0:
+                        continue
+                    if self._overlaps(k, margin=0.1):
+                        return False
+            return True
+        finally:
+            self.s, self.offset_m, self.heading_off = s0, o_was, h_was
 
     def _free_behind(self, gap_m: float = 1.0, corridor_margin_m: float = 0.3) -> bool:
         """Nothing within ``gap_m`` behind the vehicle's rear (the driver looks round)."""
