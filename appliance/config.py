@@ -152,7 +152,8 @@ class GridConfig:
     # On by default since the thirty-third session: on training seeds it turned 2 of 3
     # collisions into held stops, on the acceptance seeds it cost no stop and 1.37x the time
     # stood in false stops (the rule asked <= 1.5x; docs/tracking.md 'Out of sight')
-    hold_blind: bool = _f(True, doc="cell decision: an obstacle cell confirmed near the "
+    hold_blind: bool = _f(True, doc="an obstacle cell (with [tracking] enabled: a confirmed "
+                                      "track) confirmed near the "
                                       "front that then lies where no camera pipeline can see "
                                       "it (under its view, or nearer than its stereo can "
                                       "range) is held as a confirmed obstacle while it stays "
@@ -167,7 +168,8 @@ class GridConfig:
                                        "high above it is observed (the band's floor: what "
                                        "is lower makes no obstacle point)")
     hold_blind_min_evidence: float = _f(1.75, lo=0.0, hi=100.0,
-                                        doc="hold_blind: only a confirmed cell whose grid "
+                                        doc="hold_blind, cell decision: only a confirmed "
+                                            "cell whose grid "
                                             "evidence reached this in the cycle before it went "
                                             "out of sight is held (1.75: hit in three cycles "
                                             "running; a stubble blip at the near edge of the "

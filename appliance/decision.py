@@ -131,7 +131,8 @@ def assess_tracks(tracks: list[TrackView], cells_xy: np.ndarray, speed_mps: floa
                            f"zone ({stop_len:.1f} m) in {stop_pred[t.id]:.1f} s")
         else:
             stop_reason = (f"obstacle {name(t)} {ahead:.1f} m ahead in the stop zone "
-                           f"({stop_len:.1f} m)")
+                           f"({stop_len:.1f} m)" + (", held out of the cameras' sight"
+                                                    if t.held else ""))
     elif slow:
         ahead, t = min(slow, key=lambda a: a[0])
         what = " predicted" if t.id in slow_pred else ""
@@ -377,13 +378,38 @@ class DecisionCore:
             z = self.cfg.zones
             stop_zone = (z.front_x_m, z.front_x_m + stop_length(speed, z), z.half_width_m,
                          kappa)
-            tracks = self.tracker.update(detections, vehicle, now_ns, occ, stop_zone)
+            blind = self._blind_test(detections) if self.cfg.grid.hold_blind else None
+            tracks = self.tracker.update(detections, vehicle, now_ns, occ, stop_zone, blind)
             by_id = self.tracker.cells_by_track()
             cells = np.concatenate(list(by_id.values())) if by_id else np.zeros((0, 2))
+            held = [by_id[t.id] for t in tracks if t.held and t.id in by_id]
+            self.held_xy = np.concatenate(held) if held else np.zeros((0, 2))
             pic = Picture(cells, assess_tracks(tracks, cells, speed, self.cfg, by_id, kappa),
-                          speed, grid_cells, tracks)
+                          speed, grid_cells, tracks, held_xy=self.held_xy)
         self.last = pic
         return pic
+
+    def _blind_test(self, detections: dict):
+        """``[grid] hold_blind`` for the tracks' decision: vehicle-frame points (N, 2) -> which
+        lie in the hold's region (from half a cell behind the front to ``hold_blind_range_m``
+        ahead of it) where no camera pipeline observes a point ``hold_blind_probe_m`` above
+        them; a cycle without a camera view (after one had a view) holds all in the region,
+        a box that never had one nothing (as the cells' hold)."""
+        g, z = self.cfg.grid, self.cfg.zones
+        cams = camera_views(detections)
+        self._had_camera |= bool(cams)
+        lo, hi = z.front_x_m - 0.5 * g.cell_m, z.front_x_m + g.hold_blind_range_m
+        had = self._had_camera
+
+        def blind(xy: np.ndarray) -> np.ndarray:
+            xy = np.asarray(xy, np.float64).reshape(-1, 2)
+            out = (xy[:, 0] >= lo) & (xy[:, 0] <= hi) & had
+            if cams and out.any():
+                xyz = np.column_stack([xy, np.full(len(xy), g.hold_blind_probe_m)])
+                for o in cams:
+                    out &= ~o.view.observes(xyz)
+            return out
+        return blind
 
     def _hold_blind(self, cells: np.ndarray, conf: np.ndarray | None, detections: dict,
                     vehicle: VehicleState | None, now_ns: int

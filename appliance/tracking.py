@@ -33,7 +33,10 @@ One cycle (:meth:`Tracker.update`):
    while unseen for ``coast_s`` (occlusion), a tentative one for ``tentative_coast_s``; a
    confirmed track whose evidence falls under ``release_logodds`` ends; with
    ``coast_fused_s`` a still track the laser and a camera cue both saw is held that long
-   unseen whatever its evidence.
+   unseen whatever its evidence. With ``blind`` (the decision core's ``[grid] hold_blind``) a
+   confirmed track unseen this frame whose place no camera observes (too near, under the
+   view) is **held**: kept, and kept confirmed, whatever its evidence, until a camera can see
+   its place again or it leaves the region (``TrackView.held``).
 
 Pure code: arrays in, tracks out; no I/O.
 """
@@ -389,6 +392,7 @@ class TrackView:
     coasting: bool                # not seen this frame (held from earlier frames)
     hits: int
     age_s: float
+    held: bool = False            # kept while out of the cameras' sight (``blind``)
 
     def to_dict(self) -> dict:
         return {"id": self.id, "x_m": round(self.x_m, 3), "y_m": round(self.y_m, 3),
@@ -396,7 +400,8 @@ class TrackView:
                 "height_m": round(self.height_m, 3), "vx_mps": round(self.vx_mps, 3),
                 "vy_mps": round(self.vy_mps, 3), "confidence": round(self.confidence, 4),
                 "sources": list(self.sources), "confirmed": self.confirmed,
-                "coasting": self.coasting, "hits": self.hits, "age_s": round(self.age_s, 2),
+                "coasting": self.coasting, "held": self.held, "hits": self.hits,
+                "age_s": round(self.age_s, 2),
                 "distance_m": round(math.hypot(self.x_m, self.y_m), 2)}
 
 
@@ -411,9 +416,11 @@ class Tracker:
         self._vehicle_v = np.zeros(2)      # the vehicle's velocity over ground, world frame
         self.stamp_ns = 0
         self.last_measurements: list[Measurement] = []
+        self.held_ids: set[int] = set()      # confirmed tracks held out of the cameras' sight
 
     def reset(self) -> None:
         self.tracks.clear()
+        self.held_ids = set()
         self._last_ns = None
 
     # -- frames ----------------------------------------------------------------------------
@@ -535,10 +542,10 @@ class Tracker:
     # -- one cycle -------------------------------------------------------------------------
     def update(self, detections: dict[str, Detections], vehicle: VehicleState | None,
                now_ns: int, occupied: np.ndarray | None = None,
-               stop_zone: tuple[float, float, float, float] | None = None
-               ) -> list[TrackView]:
+               stop_zone: tuple[float, float, float, float] | None = None,
+               blind=None) -> list[TrackView]:
         ms = measurements(detections, self.grid, self.cfg, occupied)
-        return self.update_measurements(ms, vehicle, now_ns, stop_zone)
+        return self.update_measurements(ms, vehicle, now_ns, stop_zone, blind)
 
     def _fast(self, t: Track, stop_zone) -> bool:
         """Confirmed on this frame's candidate alone: a laser return cluster (laser_fast), or
@@ -560,8 +567,10 @@ class Tracker:
 
     def update_measurements(self, ms: list[Measurement], vehicle: VehicleState | None,
                             now_ns: int,
-                            stop_zone: tuple[float, float, float, float] | None = None
-                            ) -> list[TrackView]:
+                            stop_zone: tuple[float, float, float, float] | None = None,
+                            blind=None) -> list[TrackView]:
+        """One frame. ``blind``: vehicle-frame points (N, 2) -> which of them lie where no
+        camera observes them now (a confirmed track unseen there is held); None: no hold."""
         c = self.cfg
         dt = 0.0 if self._last_ns is None else (now_ns - self._last_ns) / 1e9
         self._last_ns = now_ns
@@ -612,8 +621,16 @@ class Tracker:
                 self.tracks.append(self._new_track(m, zs[j], now_ns))
         # confirmation and ending
         keep = []
+        self.held_ids = set()
+        unseen_now = [t for t in self.tracks if t.confirmed and t.last_hit_ns != now_ns]
+        if blind is not None and unseen_now:
+            out = blind(self.to_vehicle(np.array([t.state[:2] for t in unseen_now])))
+            self.held_ids = {t.id for t, b in zip(unseen_now, out) if b}
         for t in self.tracks:
             unseen = (now_ns - t.last_hit_ns) / 1e9
+            if t.id in self.held_ids:                 # out of the cameras' sight: held
+                keep.append(t)
+                continue
             if t.confirmed:
                 fused = (c.coast_fused_s > 0 and "laser" in t.seen_by
                          and len(t.seen_by - {"laser"}) > 0 and self._still(t)
@@ -675,7 +692,8 @@ class Tracker:
                 width_m=float(t.width_m), height_m=float(t.height_m), vx_mps=float(v[0]),
                 vy_mps=float(v[1]), confidence=t.probability, sources=t.sources(),
                 confirmed=t.confirmed, coasting=t.last_hit_ns != self.stamp_ns,
-                hits=t.hits, age_s=(self.stamp_ns - t.born_ns) / 1e9))
+                hits=t.hits, age_s=(self.stamp_ns - t.born_ns) / 1e9,
+                held=t.id in self.held_ids))
         return out
 
     def cells_by_track(self) -> dict[int, np.ndarray]:

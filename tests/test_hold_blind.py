@@ -196,3 +196,37 @@ def test_the_held_cells_reach_the_picture_and_the_grid_view_draws_them():
     free.cycle(_cam(3.55), speed=1.0)
     free.cycle(_cam(), speed=1.0)
     assert len(free.core.last.held_xy) == 0 and magenta(free.core.last) == 0
+
+
+def _crate_points(x, y=0.0):
+    """A 0.4 m crate's points from x on (what the stereo matched on its face and top)."""
+    xs, ys = np.meshgrid(np.arange(x, x + 0.4, 0.05), np.arange(y - 0.2, y + 0.2, 0.05))
+    pts = np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float32)
+    return {"stereo-novelty": Detections(points_xy=pts, view=_view())}
+
+
+@pytest.mark.parametrize("hold", [True, False])
+def test_the_tracks_decision_holds_a_confirmed_track_out_of_sight_too(hold):
+    """With [tracking] enabled the hold is the tracker's: a confirmed track unseen where no
+    camera observes its place is kept (and kept confirmed) whatever its evidence; it ends as
+    any track once the camera can see its place again (here: the vehicle backs away)."""
+    cfg = parse_config({"tracking": {"enabled": True}, "grid": {"hold_blind": hold}}, "<t>")
+    d = Drive(cfg)
+    # approached at 1 m/s from 6 m (a still crate), stopped for before it went out of sight
+    states = [d.cycle(_crate_points(x), speed=1.0) for x in np.arange(6.0, 3.55, -0.1)]
+    assert states[-1] == "STOP"
+    # the last 0.5 m to rest: the crate 2.8-3.2 m from the camera, nearer than it ranges
+    after = [d.cycle(_cam(), speed=1.0) for _ in range(5)] + [d.cycle(_cam()) for _ in range(100)]
+    if not hold:
+        assert after[-1] == "CLEAR"                  # the track coasted out: drive on
+        return
+    assert set(after) == {"STOP"}
+    pic = d.core.last
+    assert pic.verdict.stop_reason.endswith("held out of the cameras' sight")
+    assert [t.held for t in pic.tracks if t.confirmed] == [True] and len(pic.held_xy)
+    assert pic.tracks[0].to_dict()["held"] is True
+    # backed away 1.5 m: its place is in view and ranged again, nothing there: it ends
+    for _ in range(15):
+        d.cycle(_cam(), speed=-1.0)
+    assert [d.cycle(_cam()) for _ in range(30)][-1] == "CLEAR"
+    assert not any(t.held for t in d.core.last.tracks)
