@@ -142,3 +142,25 @@ def test_candidate_min_height_is_a_validated_boolean():
         parse_config({"perception": {"pipelines": ["rgbd"],
                                      "rgbd": {"candidate_min_height": "yes"}}})
     assert "candidate_min_height" in str(e.value)
+
+
+def test_with_camera_view_the_rgbd_pipeline_says_what_it_observes():
+    """``camera_view``: the greenhouse's Kinect hands the decision its view (for [grid]
+    hold_blind and laser_confirm_by): in its image and depth range it observes, nearer than
+    its minimum range or beyond its maximum it does not; off (the default), no view."""
+    import numpy as np
+    log, _, _ = _run(_greenhouse_daemon(RgbdPipelineConfig(camera_view=True)), 20)
+    det = log[-1].detections["rgbd"]
+    view = det.view
+    assert view is not None and view.shape is not None
+    cam = log[-1].inputs.rgbd.calib
+    x0 = cam.mount.x_m
+    pts = np.array([[x0 + 2.0, 0.0, 0.3],      # 2 m ahead of the camera, in view
+                    [x0 + 0.3, 0.0, 0.3],      # nearer than the Kinect ranges (0.5 m)
+                    [x0 + 7.0, 0.0, 0.3],      # beyond max_range_m (5 m)
+                    [x0 + 2.0, 4.0, 0.3]])     # far beside the image
+    assert view.observes(pts).tolist() == [True, False, False, False]
+    # the obstacle mask is the view's 'depth' cue, of the mask's own size
+    assert set(view.masks) == {"depth"} and view.masks["depth"].dtype == np.uint8
+    log, _, _ = _run(_greenhouse_daemon(RgbdPipelineConfig()), 3)
+    assert log[-1].detections["rgbd"].view is None

@@ -46,6 +46,7 @@ from .rgbd_decision import (NOT_CLASSIFIED, UNDEFINED, Rule, decide, not_travers
                             obstacle_groups, touching_ground)
 from .rgbd_slope import height_map, slope_map, steep_map, suspected_from
 from .rgbd_texture import classify_histograms, lbp_codes, to_grey, window_histograms, window_index
+from .view import CameraView
 
 log = logging.getLogger("fieldguard.perception.rgbd")
 
@@ -66,6 +67,13 @@ class RgbdPipelineConfig(CueOptions):
     colour_space: str = _f("rgb", choices=COLOUR_SPACES)
     min_range_m: float = _f(0.5, lo=0.0, hi=20.0, doc="depth below this is ignored")
     max_range_m: float = _f(5.0, lo=0.1, hi=50.0, doc="depth above this is ignored")
+    camera_view: bool = _f(False, doc="hand the decision what this camera observes this frame "
+                                      "(Detections.view: its image, the depth range used, its "
+                                      "obstacle mask as the 'depth' cue): [grid] hold_blind then "
+                                      "holds what the box stopped for once it is nearer than "
+                                      "the sensor ranges or under its view, and [grid] "
+                                      "laser_confirm_by can use it; false = no view (as before "
+                                      "the thirty-fourth session: the greenhouse holds nothing)")
     slope_threshold_deg: float = _f(40.0, lo=1.0, hi=89.0)
     slope_step_px: int = _f(4, lo=1, hi=16, doc="rows between the two pixels of eq. 4 (paper: 1)")
     depth_median_px: int = _f(3, choices=(0, 3, 5), doc="median filter of the depth before "
@@ -293,7 +301,17 @@ class RgbdPipeline(Pipeline):
                 pts = np.concatenate([r.points_xy[:n_geo][~low], r.points_xy[n_geo:]])
                 geo = (geo[0][~low], geo[1][~low], geo[2][~low])
         cands = self._candidates(inputs, r, geo)
-        return Detections(points_xy=pts, candidates=cands, debug={
+        view = None
+        if o.camera_view:
+            fr = inputs.rgbd
+            lo, hi = self._range(fr.calib)
+            mask = r.obstacles.astype(np.uint8) * 255
+            sx = mask.shape[1] / float(fr.calib.camera.width)
+            sy = mask.shape[0] / float(fr.calib.camera.height)
+            K = fr.calib.camera.matrix() * np.array([[sx], [sy], [1.0]])
+            view = CameraView({"depth": mask}, K, fr.calib.mount.camera_to_vehicle(),
+                              fr.calib.mount.position, hi, min_depth_m=lo)
+        return Detections(points_xy=pts, candidates=cands, view=view, debug={
             "candidates": len(cands), "low_points_dropped": n_low,
             "suspected_px": int(r.suspected.sum()), "obstacle_px": int(r.obstacles.sum()),
             "groups_colour": r.groups_colour, "groups_texture": r.groups_texture,
