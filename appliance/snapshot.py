@@ -30,6 +30,18 @@ def draw_zones(img, px, z, stop_len_m: float, bend=0.0) -> None:
         cv2.polylines(img, [pts], True, STATE_BGR[state], thick)
 
 
+def draw_held(img, px, res, g, x_max: float, half: float, ppm: float) -> np.ndarray:
+    """The cells held out of the cameras' sight this cycle (``res.held_xy``, [grid]
+    hold_blind) as magenta squares on a top view; returns them."""
+    held = np.asarray(getattr(res, "held_xy", np.zeros((0, 2))), np.float64).reshape(-1, 2)
+    r = max(2, int(round(ppm * g.cell_m * 0.75)))
+    for x, y in held:
+        if g.x_min_m <= x <= x_max and -half <= y <= half:
+            u, v = px(x, y)
+            cv2.rectangle(img, (u - r, v - r), (u + r, v + r), HELD_BGR, 2)
+    return held
+
+
 def _fit(img: np.ndarray, h: int) -> np.ndarray:
     s = h / img.shape[0]
     return cv2.resize(img, (max(1, int(round(img.shape[1] * s))), h),
@@ -213,13 +225,7 @@ def grid_panel(res, evidence: np.ndarray, cfg: Config) -> np.ndarray:
             end = px(t.x_m + t.vx_mps, t.y_m + t.vy_mps)
             cv2.arrowedLine(img, px(t.x_m, t.y_m), end, TRACK_BGR, 1, tipLength=0.3)
         _label(img, track_label(t), (b[0] + 4, a[1] + 4), 0.38, TRACK_BGR)
-    # held out of the cameras' sight ([grid] hold_blind): a magenta square round each cell
-    held = np.asarray(getattr(res, "held_xy", np.zeros((0, 2))), np.float64).reshape(-1, 2)
-    r = max(2, int(round(ppm * g.cell_m * 0.75)))
-    for x, y in held:
-        if g.x_min_m <= x <= x_max and -half <= y <= half:
-            u, v = px(x, y)
-            cv2.rectangle(img, (u - r, v - r), (u + r, v + r), HELD_BGR, 2)
+    held = draw_held(img, px, res, g, x_max, half, ppm)
     # vehicle
     cv2.rectangle(img, px(f, 0.75), px(min(0.0, f - 2.6), -0.75), (220, 220, 220), -1)
     _label(img, f"grid: stop zone {stop:.1f} m at {speed:.1f} m/s, slow +{z.slow_extra_m:.0f} m",

@@ -172,9 +172,9 @@ def test_with_a_minimum_evidence_only_what_was_seen_in_cycles_running_is_held():
 
 
 def test_the_held_cells_reach_the_picture_and_the_grid_view_draws_them():
-    """What the technician looks at: the Picture carries the held cells and the grid panel of
-    the snapshot (the console's and Foxglove's annotated view) draws them in magenta and says
-    how many; without a hold nothing magenta is drawn."""
+    """What the technician looks at: the Picture carries the held cells and the grid of the
+    snapshot and of the live console draws them in magenta and says how many; without a hold
+    nothing magenta is drawn."""
     from types import SimpleNamespace
 
     from appliance.snapshot import HELD_BGR, grid_panel
@@ -186,16 +186,20 @@ def test_the_held_cells_reach_the_picture_and_the_grid_view_draws_them():
     assert len(held) == 1 and abs(held[0, 0] - 3.45) < 0.06
     assert np.allclose(held, d.core.held_xy, atol=0.051)     # the held point, snapped to its cell
 
-    def magenta(pic):
+    from appliance.console.views import grid_view
+
+    def magenta(pic, draw=grid_panel):
         res = SimpleNamespace(inputs=None, tracks=[], verdict=pic.verdict, held_xy=pic.held_xy)
-        img = grid_panel(res, d.core.grid.evidence, cfg)
+        img = draw(res, d.core.grid.evidence, cfg)
         return int(np.all(img == np.array(HELD_BGR, np.uint8), axis=-1).sum())
 
     assert magenta(d.core.last) > 20
+    assert magenta(d.core.last, grid_view) > 20        # the live console's grid picture
     free = Drive(_cfg(hold=False))
     free.cycle(_cam(3.55), speed=1.0)
     free.cycle(_cam(), speed=1.0)
     assert len(free.core.last.held_xy) == 0 and magenta(free.core.last) == 0
+    assert magenta(free.core.last, grid_view) == 0
 
 
 def _crate_points(x, y=0.0):

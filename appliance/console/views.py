@@ -8,7 +8,8 @@ import dataclasses
 import cv2
 import numpy as np
 
-from appliance.snapshot import _label, camera_panel, bend_of, draw_zones, project_cells
+from appliance.snapshot import (HELD_BGR, _label, bend_of, camera_panel, draw_held, draw_zones,
+                                project_cells)
 from appliance.zones import stop_length
 
 GRID_PX = 480           # height of the grid picture
@@ -122,6 +123,7 @@ def grid_view(res, evidence: np.ndarray, cfg, tracks=(), height_px: int = GRID_P
     for e in z.exclusion:
         cv2.rectangle(img, px(e.x_max_m, e.y_max_m), px(e.x_min_m, e.y_min_m), (200, 120, 0), 1)
     cv2.rectangle(img, px(f, 0.75), px(min(0.0, f - 2.6), -0.75), (220, 220, 220), -1)
+    held = draw_held(img, px, res, g, x_max, half, ppm)    # [grid] hold_blind
     for t in track_dicts(tracks):
         hl = max(0.2, float(t.get("length_m") or 0.5)) / 2
         tw = max(0.2, float(t.get("width_m") or 0.5)) / 2
@@ -132,6 +134,9 @@ def grid_view(res, evidence: np.ndarray, cfg, tracks=(), height_px: int = GRID_P
             _label(img, _track_label(t), (a[0], max(12, a[1] - 3)), 0.4, col)
     _label(img, f"stop zone {stop:.1f} m at {speed:.1f} m/s, slow +{z.slow_extra_m:.0f} m",
            (8, 18), 0.45)
+    if len(held):
+        _label(img, f"magenta: {len(held)} cells held out of the cameras' sight", (8, 36),
+               0.42, HELD_BGR)
     return img
 
 
