@@ -317,11 +317,16 @@ def test_vehicle_collides_if_never_stopped_and_not_with_the_oracle():
     assert st["collisions"] >= 2 and "o2" in st["obstacles_hit"]   # the person on the path
     assert len(set(st["obstacles_hit"])) == st["collisions"]
     careful = _field(sensors=())
+    at_rest = None                     # clearance when it first came to rest
     for _ in range(200):
         careful.step(0.1, careful.oracle_command())
+        if at_rest is None and careful.vehicle.speed == 0.0:
+            at_rest = careful.vehicle.clearance_ahead()
     st = careful.stats()
     assert st["collisions"] == 0 and st["stopped_s"] > 5.0
-    assert careful.vehicle.clearance_ahead() < 3.0              # stopped in front of the person
+    # it stopped in front of the person (5 s later the safety driver backs up and steers
+    # round: where it stands at the end depends on how far he has got)
+    assert at_rest is not None and at_rest < 3.0
 
 
 # ---- run folder -----------------------------------------------------------------------------------
