@@ -390,15 +390,16 @@ class DecisionCore:
         return pic
 
     def _blind_test(self, detections: dict):
-        """``[grid] hold_blind`` for the tracks' decision: vehicle-frame points (N, 2) -> which
+        """``[grid] hold_blind``, for the cells' and the tracks' decision: vehicle-frame points
+        (N, 2) -> which
         lie in the hold's region (from half a cell behind the front to ``hold_blind_range_m``
         ahead of it) where no camera pipeline observes a point ``hold_blind_probe_m`` above
         them; a cycle without a camera view (after one had a view) holds all in the region,
         a box that never had one nothing (as the cells' hold)."""
-        g, z = self.cfg.grid, self.cfg.zones
+        g = self.cfg.grid
         cams = camera_views(detections)
         self._had_camera |= bool(cams)
-        lo, hi = z.front_x_m - 0.5 * g.cell_m, z.front_x_m + g.hold_blind_range_m
+        lo, hi = self._hold_region()
         had = self._had_camera
 
         def blind(xy: np.ndarray) -> np.ndarray:
@@ -410,6 +411,12 @@ class DecisionCore:
                     out &= ~o.view.observes(xyz)
             return out
         return blind
+
+    def _hold_region(self) -> tuple[float, float]:
+        """The hold's region along x: half a cell behind the front to hold_blind_range_m
+        ahead of it."""
+        g, z = self.cfg.grid, self.cfg.zones
+        return z.front_x_m - 0.5 * g.cell_m, z.front_x_m + g.hold_blind_range_m
 
     def _hold_blind(self, cells: np.ndarray, conf: np.ndarray | None, detections: dict,
                     vehicle: VehicleState | None, now_ns: int
@@ -424,24 +431,12 @@ class DecisionCore:
         sees its place again (then the sensors decide, as for any cell), when it passes behind
         the front, or when it lies farther ahead than the range. A cycle without any camera
         view (a camera fault: the loop stops the vehicle for that) keeps every hold."""
-        g, z = self.cfg.grid, self.cfg.zones
+        g = self.cfg.grid
         dt = 0.0 if self._hold_ns is None else (now_ns - self._hold_ns) * 1e-9
         self._hold_ns = now_ns
         seeds = move_with_vehicle(self._hold_seeds, dt, vehicle)
-        cams = camera_views(detections)
-        self._had_camera |= bool(cams)
-        lo, hi = z.front_x_m - 0.5 * g.cell_m, z.front_x_m + g.hold_blind_range_m
-        held = np.zeros((0, 2))
-        if len(seeds) and self._had_camera:
-            seeds = seeds[(seeds[:, 0] >= lo) & (seeds[:, 0] <= hi)]
-            if cams and len(seeds):
-                xyz = np.column_stack([seeds, np.full(len(seeds), g.hold_blind_probe_m)])
-                seen = np.zeros(len(seeds), bool)
-                for o in cams:
-                    seen |= o.view.observes(xyz)
-                held = seeds[~seen]
-            else:
-                held = seeds
+        held = seeds[self._blind_test(detections)(seeds)]    # the one test the tracks share
+        lo, hi = self._hold_region()
         # next cycle's candidates: this cycle's confirmed cells near the front (a margin of
         # 1 m beyond the range: what moves into it before the next look) and the held ones
         c = np.asarray(cells, np.float64).reshape(-1, 2)
