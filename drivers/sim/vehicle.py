@@ -345,8 +345,7 @@ class Vehicle:
             start = max(0.0, s0 - back)
             for u in np.linspace(0.0, 1.0, samples):
                 self.s = start + u * length
-                self.offset_m = here + (off - here) * (3.0 * u * u - 2.0 * u ** 3)
-                self.heading_off = math.atan((off - here) * 6.0 * u * (1.0 - u) / length)
+                self.offset_m, self.heading_off = self._s_out(here, off, u, length)
                 x, y, _ = self.pose()
                 for k, o in enumerate(self.scene.world.obstacles):
                     if o.id in self.obstacles_hit or \
@@ -357,6 +356,14 @@ class Vehicle:
             return True
         finally:
             self.s, self.offset_m, self.heading_off = s0, o_was, h_was
+
+    @staticmethod
+    def _s_out(o0: float, o1: float, u: float, length: float) -> tuple[float, float]:
+        """(offset, heading off the path) at progress ``u`` of the S from offset ``o0`` to
+        ``o1`` over ``length`` m of path: the one curve the driver steers out along and looks
+        along before he goes."""
+        return (o0 + (o1 - o0) * (3.0 * u * u - 2.0 * u ** 3),
+                math.atan((o1 - o0) * 6.0 * u * (1.0 - u) / length))
 
     def _free_behind(self, gap_m: float = 1.0, corridor_margin_m: float = 0.3) -> bool:
         """Nothing within ``gap_m`` behind the vehicle's rear (the driver looks round)."""
@@ -398,8 +405,7 @@ class Vehicle:
         o0, o1, length = m["o0"], m["o1"], m["length"]
         u = min(1.0, m["u"] + max(ds, 0.0) / length)
         m["u"] = u
-        self.offset_m = o0 + (o1 - o0) * (3.0 * u * u - 2.0 * u ** 3)
-        self.heading_off = math.atan((o1 - o0) * 6.0 * u * (1.0 - u) / length)
+        self.offset_m, self.heading_off = self._s_out(o0, o1, u, length)
         if u >= 1.0:
             self.offset_m, self.heading_off = o1, 0.0
             self._manoeuvre = None
