@@ -379,7 +379,8 @@ class DecisionCore:
             stop_zone = (z.front_x_m, z.front_x_m + stop_length(speed, z), z.half_width_m,
                          kappa)
             blind = self._blind_test(detections) if self.cfg.grid.hold_blind else None
-            tracks = self.tracker.update(detections, vehicle, now_ns, occ, stop_zone, blind)
+            tracks = self.tracker.update(detections, vehicle, now_ns, occ, stop_zone, blind,
+                                         hold_laser=self.cfg.grid.hold_blind_laser)
             by_id = self.tracker.cells_by_track()
             cells = np.concatenate(list(by_id.values())) if by_id else np.zeros((0, 2))
             held = [by_id[t.id] for t in tracks if t.held and t.id in by_id]
@@ -445,6 +446,16 @@ class DecisionCore:
         c = c[(c[:, 0] >= lo) & (c[:, 0] <= hi + 1.0)]
         if g.hold_blind_min_evidence > 0 and len(c):
             c = c[self.grid.evidence_at(c) >= g.hold_blind_min_evidence - 1e-6]
+        if not g.hold_blind_laser and len(c):
+            # only what a camera saw: a camera pipeline's points hit the cell this cycle, or
+            # it is a candidate already (hit by one in an earlier cycle while confirmed)
+            cam = [o.points_xy for n, o in detections.items()
+                   if n != "laser" and o is not None and len(o.points_xy)]
+            ok = (self.grid.hit_by(c, np.concatenate(cam)) if cam
+                  else np.zeros(len(c), bool))
+            if len(seeds) and not ok.all():
+                ok |= near_squares(c, seeds, g.cell_m)
+            c = c[ok]
         nxt = np.concatenate([c, held]) if len(held) else c
         if len(nxt):      # one per grid cell (the first: a confirmed cell before a held one)
             key = np.floor(nxt / g.cell_m).astype(np.int64)

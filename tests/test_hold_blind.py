@@ -234,3 +234,61 @@ def test_the_tracks_decision_holds_a_confirmed_track_out_of_sight_too(hold):
         d.cycle(_cam(), speed=-1.0)
     assert [d.cycle(_cam()) for _ in range(30)][-1] == "CLEAR"
     assert not any(t.held for t in d.core.last.tracks)
+
+
+def _laser(*xs):
+    pts = np.array([[x, 0.0] for x in xs], np.float32).reshape(-1, 2)
+    return Detections(points_xy=pts, points_z=np.full(len(pts), 0.3))
+
+
+@pytest.mark.parametrize("laser_too", [True, False])
+def test_hold_blind_laser_false_holds_only_what_a_camera_saw(laser_too):
+    """``[grid] hold_blind_laser``: the hold stands in for a camera that lost sight of what it
+    saw. A cell only the laser hit (in the camera's view, the camera matching nothing there)
+    goes out of the camera's sight: held by default, not held with the option off (the laser
+    still sees its plane: a phantom it stopped returning from is not kept)."""
+    cfg = _cfg(hold_blind_laser=laser_too)
+    d = Drive(cfg)
+    assert d.cycle({**_cam(), "laser": _laser(3.55)}, speed=1.0) == "STOP"
+    # 0.1 m on: out of the camera's range; the laser no longer returns from it
+    after = [d.cycle({**_cam(), "laser": _laser()}, speed=1.0)] + [
+        d.cycle({**_cam(), "laser": _laser()}) for _ in range(20)]
+    if laser_too:
+        assert set(after) == {"STOP"} and len(d.core.held_xy) == 1
+    else:
+        assert after[-1] == "CLEAR" and len(d.core.held_xy) == 0
+    # a cell the camera hit is held either way, also when in the cycles before it went out of
+    # sight only the laser still hit it (the camera saw it once while it was confirmed)
+    d = Drive(cfg)
+    assert d.cycle({**_cam(3.75), "laser": _laser(3.75)}, speed=1.0) == "STOP"
+    for x in (3.65, 3.55):                       # still in the camera's view and range
+        d.cycle({**_cam(), "laser": _laser(x)}, speed=1.0)
+    assert d.core.held_xy.shape[0] == 0
+    states = [d.cycle({**_cam(), "laser": _laser()}, speed=1.0)] + [
+        d.cycle({**_cam(), "laser": _laser()}) for _ in range(20)]
+    assert set(states) == {"STOP"} and len(d.core.held_xy) == 1
+    assert abs(d.core.held_xy[0, 0] - 3.45) < 0.06
+
+
+@pytest.mark.parametrize("laser_too", [True, False])
+def test_the_tracks_hold_of_a_laser_only_track_follows_hold_blind_laser(laser_too):
+    cfg = parse_config({"tracking": {"enabled": True},
+                        "grid": {"hold_blind_laser": laser_too}}, "<t>")
+    d = Drive(cfg)
+
+    def laser_crate(x):
+        xs, ys = np.meshgrid(np.arange(x, x + 0.4, 0.05), np.arange(-0.2, 0.2, 0.05))
+        pts = np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float32)
+        return Detections(points_xy=pts, points_z=np.full(len(pts), 0.3))
+
+    states = [d.cycle({**_cam(), "laser": laser_crate(x)}, speed=1.0)
+              for x in np.arange(6.0, 3.55, -0.1)]
+    assert states[-1] == "STOP"
+    assert {s for t in d.core.last.tracks if t.confirmed for s in t.sources} == {"laser"}
+    after = [d.cycle({**_cam(), "laser": Detections()}, speed=1.0) for _ in range(5)] + [
+        d.cycle({**_cam(), "laser": Detections()}) for _ in range(100)]
+    if laser_too:
+        assert set(after) == {"STOP"}
+        assert [t.held for t in d.core.last.tracks if t.confirmed] == [True]
+    else:
+        assert after[-1] == "CLEAR" and not any(t.held for t in d.core.last.tracks)
