@@ -175,14 +175,17 @@ class GridConfig:
                                             "running; a stubble blip at the near edge of the "
                                             "view is seen in one or two); 0 = any confirmed "
                                             "cell")
-    hold_blind_laser: bool = _f(True, doc="hold_blind: also hold what only the laser saw (a "
-                                          "cell no camera pipeline's points hit while it was "
-                                          "confirmed; a track seen by no other source); "
-                                          "false = the hold is for what a camera saw and then "
-                                          "could not (the laser does not lose sight of what "
-                                          "stands in its plane before the vehicle; a laser "
-                                          "phantom it stopped returning from is not kept). "
-                                          "docs/tracking.md 'Laser-only cells'")
+    # false by default since the thirty-fifth session (training 121-132: the same stops,
+    # collisions and overrides, 1.4 s less stood in false stops; docs/tracking.md)
+    hold_blind_laser: bool = _f(False, doc="hold_blind: also hold what only the laser saw (a "
+                                           "cell no camera pipeline's points hit while it was "
+                                           "confirmed; a track seen by no other source); "
+                                           "false = the hold is for what a camera saw and "
+                                           "then could not (the laser does not lose sight of "
+                                           "what stands in its plane before the vehicle, and "
+                                           "its returns beside the path, where no camera "
+                                           "looks, are not kept). docs/tracking.md "
+                                           "'Laser-only cells'")
     hold_blind_range_m: float = _f(3.0, lo=0.0, hi=30.0,
                                    doc="hold_blind: only cells at most this far ahead of the "
                                        "front (zones.front_x_m) are held (the near blind "

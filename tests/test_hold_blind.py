@@ -159,6 +159,7 @@ def test_points_move_with_the_vehicle_as_the_grids_cells_do(x, y, speed, yaw_rat
 
 def test_with_a_minimum_evidence_only_what_was_seen_in_cycles_running_is_held():
     assert GridConfig().hold_blind and GridConfig().hold_blind_min_evidence == 1.75  # defaults
+    assert not GridConfig().hold_blind_laser
     cfg = _cfg(hold_blind_min_evidence=1.75)
     # seen in one cycle (a blip at the near edge), then out of sight: not held
     d = Drive(cfg)
