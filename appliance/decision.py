@@ -379,8 +379,7 @@ class DecisionCore:
             stop_zone = (z.front_x_m, z.front_x_m + stop_length(speed, z), z.half_width_m,
                          kappa)
             blind = self._blind_test(detections) if self.cfg.grid.hold_blind else None
-            tracks = self.tracker.update(detections, vehicle, now_ns, occ, stop_zone, blind,
-                                         hold_laser=self.cfg.grid.hold_blind_laser)
+            tracks = self.tracker.update(detections, vehicle, now_ns, occ, stop_zone, blind)
             by_id = self.tracker.cells_by_track()
             cells = np.concatenate(list(by_id.values())) if by_id else np.zeros((0, 2))
             held = [by_id[t.id] for t in tracks if t.held and t.id in by_id]

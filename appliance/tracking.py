@@ -543,9 +543,9 @@ class Tracker:
     def update(self, detections: dict[str, Detections], vehicle: VehicleState | None,
                now_ns: int, occupied: np.ndarray | None = None,
                stop_zone: tuple[float, float, float, float] | None = None,
-               blind=None, hold_laser: bool = True) -> list[TrackView]:
+               blind=None) -> list[TrackView]:
         ms = measurements(detections, self.grid, self.cfg, occupied)
-        return self.update_measurements(ms, vehicle, now_ns, stop_zone, blind, hold_laser)
+        return self.update_measurements(ms, vehicle, now_ns, stop_zone, blind)
 
     def _fast(self, t: Track, stop_zone) -> bool:
         """Confirmed on this frame's candidate alone: a laser return cluster (laser_fast), or
@@ -568,11 +568,11 @@ class Tracker:
     def update_measurements(self, ms: list[Measurement], vehicle: VehicleState | None,
                             now_ns: int,
                             stop_zone: tuple[float, float, float, float] | None = None,
-                            blind=None, hold_laser: bool = True) -> list[TrackView]:
+                            blind=None) -> list[TrackView]:
         """One frame. ``blind``: vehicle-frame points (N, 2) -> which of them lie where no
         camera observes them now (a confirmed track unseen there is held); None: no hold.
-        ``hold_laser`` false: a track no source but the laser ever saw is not held
-        (``[grid] hold_blind_laser``)."""
+        With ``[grid] hold_blind_laser`` false a track no source but the laser ever saw is
+        not held."""
         c = self.cfg
         dt = 0.0 if self._last_ns is None else (now_ns - self._last_ns) / 1e9
         self._last_ns = now_ns
@@ -625,7 +625,7 @@ class Tracker:
         keep = []
         self.held_ids = set()
         unseen_now = [t for t in self.tracks if t.confirmed and t.last_hit_ns != now_ns
-                      and (hold_laser or t.seen_by - {"laser"})]
+                      and (self.grid.hold_blind_laser or t.seen_by - {"laser"})]
         if blind is not None and unseen_now:
             out = blind(self.to_vehicle(np.array([t.state[:2] for t in unseen_now])))
             self.held_ids = {t.id for t, b in zip(unseen_now, out) if b}
