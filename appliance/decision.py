@@ -167,6 +167,13 @@ def near_squares(xy: np.ndarray, other_xy: np.ndarray, side_m: float) -> np.ndar
     return out
 
 
+def camera_points(detections: dict) -> list[np.ndarray]:
+    """This cycle's obstacle points (each (N, 2), vehicle frame) of every pipeline but the
+    laser: what a camera saw."""
+    return [o.points_xy for n, o in detections.items()
+            if n != "laser" and o is not None and len(o.points_xy)]
+
+
 def camera_views(detections: dict) -> list:
     """This cycle's camera detections that carry a view (``Detections.view``): what a laser
     return can be confirmed by."""
@@ -350,9 +357,7 @@ class DecisionCore:
                 conf = recurs if conf is None else (conf & recurs)
             if laser_split is not None and len(laser_split[0]):
                 # ... and a cell that only unconfirmed laser returns hit this cycle is a SLOW
-                others = [o.points_xy for n, o in detections.items()
-                          if n != "laser" and o is not None and len(o.points_xy)]
-                others.append(laser_split[1])
+                others = camera_points(detections) + [laser_split[1]]
                 slow = self.grid.hit_by(grid_cells, laser_split[0])
                 slow &= ~self.grid.hit_by(grid_cells, np.concatenate(others))
                 conf = ~slow if conf is None else (conf & ~slow)
@@ -448,8 +453,7 @@ class DecisionCore:
         if not g.hold_blind_laser and len(c):
             # only what a camera saw: a camera pipeline's points hit the cell this cycle, or
             # it is a candidate already (hit by one in an earlier cycle while confirmed)
-            cam = [o.points_xy for n, o in detections.items()
-                   if n != "laser" and o is not None and len(o.points_xy)]
+            cam = camera_points(detections)
             ok = (self.grid.hit_by(c, np.concatenate(cam)) if cam
                   else np.zeros(len(c), bool))
             if len(seeds) and not ok.all():
