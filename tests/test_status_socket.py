@@ -189,3 +189,29 @@ def test_clients_that_do_not_read_their_answer_get_busy_not_a_hang(tmp_path):
 def test_client_request_helper_still_works(daemon):
     _, sock = daemon
     assert json.loads(request(sock, "status"))["mode"] == "sim"
+
+
+def test_a_client_asking_again_at_once_is_never_told_busy_by_its_own_last_requests(
+        tmp_path, monkeypatch):
+    """The race found as a flaky test under CI load: a slot was freed only after the
+    connection's end (closing, taking the client's unread rest), which a starved thread
+    reaches late; a client that had its whole answer and asked again at once found the
+    slots still held by its own earlier requests and was told "busy". Here each ending is
+    made slow (as a starved thread is): one client asking over and over is answered every
+    time."""
+    import appliance.status as status_mod
+    real = status_mod._finish
+
+    def slow_finish(conn):       # the client has its answer's end; the thread is starved
+        real(conn)
+        time.sleep(0.5)
+    monkeypatch.setattr(status_mod, "_finish", slow_finish)
+    srv = _server(tmp_path)
+    srv.start()
+    try:
+        for _ in range(2 * MAX_CLIENTS + 1):
+            doc = json.loads(_raw(srv.path, b"status\n"))
+            assert "error" not in doc, doc
+        assert srv.refused == 0
+    finally:
+        srv.stop()
