@@ -77,7 +77,14 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
     island_min_neighbours: int = _f(1, lo=0, hi=8, doc="novel 8-neighbours a novel cell needs")
     dilate_cells: int = _f(1, lo=0, hi=10, doc="dilation of the novelty mask, in cells")
     obstacle_margin_px: float = _f(64.0, lo=0.0, hi=2000.0,
-                                   doc="cells this close to a detected obstacle are never learnt")
+                                   doc="cells this close to a detected obstacle are never learnt "
+                                       "(pixels of an image obstacle_margin_ref_px wide)")
+    obstacle_margin_ref_px: int = _f(0, lo=0, hi=16384,
+                                     doc="obstacle_margin_px is in pixels of an image this wide "
+                                         "(1280, the paper's: the same margin in novelty cells, "
+                                         "2 each way, whatever the camera's resolution); 0 = "
+                                         "in pixels of the camera's own image (4 cells each way "
+                                         "at 640 px; docs/front-end.md 'The feedback margin')")
     alpha: float = _f(0.1, lo=0.0, hi=1.0, doc="stabilisation high-pass: (1-alpha) per frame")
     stabilise: str = _f("auto", choices=("auto", "attitude", "vo", "off"),
                         doc="auto = vehicle attitude when present, else visual odometry")
@@ -697,7 +704,7 @@ class StereoNoveltyPipeline(Pipeline):
             # tests/test_canopy.py, the cattle)
             fb = fb | under_canopy
         exclude = obstacle_cells(px[fb] * (k / kd), res.mask.shape, res.cell_px,
-                                 o.obstacle_margin_px / kd)
+                                 self._margin_px(W, kd))
         boot = None
         if o.boot_guard and not self.novelty.first_sent:
             boot = self._boot_check(fr, inputs.vehicle, res, kd, extra)
@@ -793,7 +800,7 @@ class StereoNoveltyPipeline(Pipeline):
                        & (np.abs(P[:, 1] - c.y_m) <= c.width_m / 2 + 0.2))
         rows, cols = res.mask.shape
         exclude = obstacle_cells(PX[inside] * (k / kd), (rows, cols), res.cell_px,
-                                 o.obstacle_margin_px / kd)
+                                 self._margin_px(W, kd))
         # only below the horizon (a cell's top at least one cell under it): the sky and the
         # skyline are learnt whatever the boot pass matched there. A textureless sky gets
         # smooth false disparities that pass every check; kept out of the first update it
@@ -811,6 +818,15 @@ class StereoNoveltyPipeline(Pipeline):
                                  interpolation=cv2.INTER_AREA) > 0.25
             exclude |= cue.astype(bool)
         return {"exclude": exclude, "candidates": cands, "xy": P[inside, :2]}
+
+    def _margin_px(self, width: int, kd: int) -> float:
+        """``obstacle_margin_px`` in pixels of the descriptor image (the camera's ``width`` /
+        ``kd``): given for an image ``obstacle_margin_ref_px`` wide, or for the camera's own
+        image when that is 0."""
+        o: StereoNoveltyConfig = self.options
+        if o.obstacle_margin_ref_px > 0:
+            return o.obstacle_margin_px * (width / float(kd)) / float(o.obstacle_margin_ref_px)
+        return o.obstacle_margin_px / kd
 
     def _horizon_row(self, calib, vehicle) -> float:
         """The image row (of ``calib``'s image) of the level horizon, with the vehicle's pitch
