@@ -78,7 +78,8 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
     dilate_cells: int = _f(1, lo=0, hi=10, doc="dilation of the novelty mask, in cells")
     obstacle_margin_px: float = _f(64.0, lo=0.0, hi=2000.0,
                                    doc="cells this close to a detected obstacle are never learnt "
-                                       "(pixels of an image obstacle_margin_ref_px wide)")
+                                       "(in pixels: of the camera's image, or see "
+                                       "obstacle_margin_ref_px)")
     obstacle_margin_ref_px: int = _f(0, lo=0, hi=16384,
                                      doc="obstacle_margin_px is in pixels of an image this wide "
                                          "(1280, the paper's: the same margin in novelty cells, "
