@@ -78,6 +78,11 @@ class ZonesConfig:
                                   doc="follow_path: a path whose first point is further than "
                                       "this from the vehicle's origin (the vehicle is not on "
                                       "it) is not used")
+    path_max_heading_deg: float = _f(45.0, lo=0.0, hi=180.0,
+                                     doc="follow_path: a path whose first metre heads more "
+                                         "than this off the vehicle's heading is not used "
+                                         "(the vehicle is not driving it yet: an autopilot's "
+                                         "next leg in the middle of its turn)")
 
 
 @dataclass(frozen=True)
@@ -333,6 +338,15 @@ class SimConfig:
     seed: int = _f(0, lo=0)
     stereo_scale: float = _f(0.5, lo=0.1, hi=1.0)
     pace: float = _f(1.0, lo=0.0, hi=100.0, doc="1 = real time, 0 = as fast as possible")
+    path: str = _f("route", choices=("route", "mission", "none"),
+                   doc="the planned path the simulated vehicle hands the box ([zones] "
+                       "follow_path): its route ahead (the best a path can be), the legs "
+                       "between its lanes' ends as the box builds them from an autopilot's "
+                       "mission (drivers/mission_path.py), or none")
+    mission_wp_radius_m: float = _f(2.0, lo=0.1, hi=20.0,
+                                    doc="path = \"mission\": how near the vehicle comes to a "
+                                        "waypoint before the autopilot heads for the next "
+                                        "(ArduPilot Rover's WP_RADIUS)")
 
 
 @dataclass(frozen=True)

@@ -200,6 +200,19 @@ def camera_confirms(cams: list, xyz: np.ndarray, names, radius_m: float
     return inside, ok
 
 
+def path_heading_deg(p: np.ndarray, over_m: float = 1.0) -> float | None:
+    """The direction of a planned path's first ``over_m`` metres (from its first point to its
+    point that far along it, or its end) against the vehicle's heading, degrees left
+    positive; None when the path has no length."""
+    d = np.hypot(*np.diff(p, axis=0).T) if len(p) >= 2 else np.zeros(0)
+    if not len(d) or d.sum() <= 1e-9:
+        return None
+    cum = np.concatenate([[0.0], np.cumsum(d)])
+    s = min(over_m, float(cum[-1]))
+    x, y = np.interp(s, cum, p[:, 0]), np.interp(s, cum, p[:, 1])
+    return math.degrees(math.atan2(y - p[0, 1], x - p[0, 0]))
+
+
 class DecisionCore:
     """Fusion, tracking, zones and the gate for one box (one instance per loop or per run)."""
 
@@ -264,6 +277,10 @@ class DecisionCore:
                     off = math.hypot(p[0, 0], p[0, 1])
                     if off > z.path_max_offset_m:
                         raise ValueError(f"it starts {off:.2f} m from the vehicle")
+                    head = path_heading_deg(p)
+                    if head is not None and abs(head) > z.path_max_heading_deg:
+                        raise ValueError(f"it heads {head:+.0f} deg off the vehicle's "
+                                         f"heading")
                     # as far as the slow zone reaches, and a cell beyond
                     speed = vehicle.speed_mps if math.isfinite(vehicle.speed_mps) else 0.0
                     reach = stop_length(speed, z) + z.slow_extra_m + 2 * self.cfg.grid.cell_m

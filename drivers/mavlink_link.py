@@ -34,6 +34,7 @@ import time
 
 from hal.devices import VehicleLink
 from hal.errors import DeviceInitializationError, DeviceOperationError
+from drivers.mavlink_mission import MissionReader
 from hal.types import GateOutput, GateState, VehicleState
 
 log = logging.getLogger("fieldguard.link.mavlink")
@@ -141,6 +142,7 @@ class MavlinkVehicleLink(VehicleLink):
         "min_distance_cm": int, "max_distance_cm": int, "distance_sensor": bool,
         "signing_key": str, "ack_timeout_s": float, "retry_max_s": float,
         "stream_hz": float, "bad_packets_per_s_fault": int,
+        "mission_path": bool, "auto_custom_mode": int,
     }
     default_timeout_s = 0.5
 
@@ -150,7 +152,7 @@ class MavlinkVehicleLink(VehicleLink):
                  resume_custom_submode=0, heartbeat_hz=1.0, min_distance_cm=20,
                  max_distance_cm=3000, distance_sensor=False, signing_key="",
                  ack_timeout_s=0.3, retry_max_s=2.0, stream_hz=10.0,
-                 bad_packets_per_s_fault=5):
+                 bad_packets_per_s_fault=5, mission_path=False, auto_custom_mode=10):
         super().__init__(name, clock, timeout_s)
         if not 1 <= sysid <= 255:
             raise ValueError("sysid must be 1..255")
@@ -190,6 +192,13 @@ class MavlinkVehicleLink(VehicleLink):
         self._hold_result = ""
         self._hold_refused = ""
         self.last_wire_ns: int | None = None
+        # the planned path from the autopilot's mission ([zones] follow_path)
+        self.mission = (MissionReader(sysid, COMP_ID_OBSTACLE_AVOIDANCE,
+                                      auto_custom_mode=auto_custom_mode, fresh_s=timeout_s)
+                        if mission_path else None)
+        self._gpos = None           # (t, lat, lon) degrees
+        self._lpos = None           # (t, north, east) metres
+        self.path_refused = ""
 
     @classmethod
     def from_config(cls, cfg, clock, shared):
@@ -214,6 +223,10 @@ class MavlinkVehicleLink(VehicleLink):
         for key in ("heartbeat_hz", "stream_hz", "ack_timeout_s", "retry_max_s", "baud"):
             if key in options and not options[key] > 0:
                 return key, f"must be > 0, got {options[key]}"
+        mode = options.get("auto_custom_mode", 10)
+        if not 0 <= mode <= 0xFFFFFFFF:
+            return "auto_custom_mode", (f"must be a HEARTBEAT custom_mode (0..4294967295), "
+                                        f"got {mode}")
         lo, hi = options.get("min_distance_cm", 20), options.get("max_distance_cm", 3000)
         if not 0 <= lo < hi <= 65535:
             return "max_distance_cm" if lo >= 0 else "min_distance_cm", (
@@ -391,6 +404,18 @@ class MavlinkVehicleLink(VehicleLink):
         now = time.monotonic()
         self._service_hold(now)
         self._request_streams(now)
+        if self.mission is not None and (self.target_system,
+                                         self.target_component) in self._systems:
+            self.mission.service(now, self._send_mission)
+
+    def _send_mission(self, name: str, *args) -> None:
+        try:
+            with self._tx_lock:
+                getattr(self.mav, name + "_send")(self.target_system, self.target_component,
+                                                  *args)
+            self._count("mission_requests_sent")
+        except DeviceOperationError:
+            self._count("send_errors")
 
     def _bad_packet(self, why: str) -> None:
         self._count("bad_packets")
@@ -425,6 +450,10 @@ class MavlinkVehicleLink(VehicleLink):
                 self._hold_achieved(f"vehicle reports mode {m.custom_mode}")
         elif t == "COMMAND_ACK" and m.command == MAV_CMD_DO_SET_MODE:
             self._on_ack(m.result)
+        elif t.startswith("MISSION_"):
+            if self.mission is not None:
+                self.mission.on_message(t, m, now)
+            return
         elif t == "ATTITUDE":
             vals = (m.roll, m.pitch, m.yaw, m.yawspeed)
             if not all(math.isfinite(v) for v in vals):
@@ -439,6 +468,12 @@ class MavlinkVehicleLink(VehicleLink):
             else:
                 scale = 0.01 if t == "GLOBAL_POSITION_INT" else 1.0
                 vn, ve = m.vx * scale, m.vy * scale
+                if t == "GLOBAL_POSITION_INT":
+                    lat, lon = m.lat * 1e-7, m.lon * 1e-7
+                    if (lat, lon) != (0.0, 0.0) and abs(lat) <= 90 and abs(lon) <= 180:
+                        self._gpos = (now, lat, lon)      # 0, 0: no fix
+                elif math.isfinite(m.x) and math.isfinite(m.y):
+                    self._lpos = (now, float(m.x), float(m.y))
                 if self._att is not None:
                     yaw = self._att[3]
                     v = vn * math.cos(yaw) + ve * math.sin(yaw)     # signed, along the heading
@@ -484,7 +519,22 @@ class MavlinkVehicleLink(VehicleLink):
         # yaw (and yaw rate) left positive; roll right-side-down positive in both.
         self._publish(VehicleState(stamp_ns=self.clock.now_ns(), seq=self._state_seq,
                                    speed_mps=self._speed[1], yaw_rate_radps=-yawspeed,
-                                   roll_rad=roll, pitch_rad=-pitch, yaw_rad=-yaw))
+                                   roll_rad=roll, pitch_rad=-pitch, yaw_rad=-yaw,
+                                   path_xy=self._planned_path(now, yaw)))
+
+    def _planned_path(self, now: float, yaw_ned: float):
+        """The path from the autopilot's mission (``mission_path``), else None; why not in
+        ``path_refused`` (the link's status)."""
+        if self.mission is None:
+            return None
+        fresh = lambda p: p is not None and now - p[0] <= self.timeout_s   # noqa: E731
+        path, self.path_refused = self.mission.path(
+            self._vehicle_mode, yaw_ned,
+            global_pos=self._gpos[1:] if fresh(self._gpos) else None,
+            local_pos=self._lpos[1:] if fresh(self._lpos) else None)
+        if path is not None:
+            self._count("paths_sent")
+        return path
 
     def _request_streams(self, now: float) -> None:
         """Ask the autopilot for ATTITUDE and VFR_HUD at stream_hz, when it is there but the
@@ -518,5 +568,7 @@ class MavlinkVehicleLink(VehicleLink):
                     "compid": COMP_ID_OBSTACLE_AVOIDANCE, "signing": bool(self.signing),
                     "hold": {"wanted": self._hold_wanted, "done": self._hold_done,
                              "attempts": self._hold_attempts, "result": self._hold_result,
-                             "mode": self.hold_mode[0]}})
+                             "mode": self.hold_mode[0]},
+                    "mission": (None if self.mission is None else
+                                dict(self.mission.status(), path=self.path_refused or "used"))})
         return out

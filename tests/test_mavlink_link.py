@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from tests.conftest import missing_tool
@@ -93,7 +94,7 @@ def rig(tmp_path_factory):
     _wait_until_mavproxy_forwards(po, vehicle)
     link = MavlinkVehicleLink("link", MonotonicClock(), 0.5, sysid=SYSID,
                               connection=f"udpout:127.0.0.1:{po}", ack_timeout_s=0.2,
-                              retry_max_s=0.8, distance_sensor=True)
+                              retry_max_s=0.8, distance_sensor=True, mission_path=True)
     r = LoopRig(link)
     r.laser.put_obstacle(4.0, 0.0)            # boot into a STOP that lasts until the test clears it
     r.start()
@@ -196,6 +197,31 @@ def test_silent_autopilot_is_no_data_and_stop(rig):
     assert "link" in rig.loop.gate.reason
     rig.vehicle.cmd("talk")
     assert wait_for(lambda: rig.state is GateState.CLEAR, 5)
+
+
+def test_mission_path_from_the_vehicle_through_mavproxy(rig):
+    """The box reads the vehicle's mission over the mission protocol (MAVProxy, a ground
+    station itself, reads it too: the box takes only the answers addressed to it) and hands
+    the planned path on with the vehicle state while the vehicle flies it."""
+    v = rig.vehicle
+    for c in ("pos -27.0 153.0", "yaw 0", "current 1", "mode 10",
+              "mission -27.0,153.0 -26.9999,153.0 -26.9999,153.0001"):
+        v.cmd(c)
+    newest_path = lambda: getattr(rig.link.newest(), "path_xy", None)   # noqa: E731
+    assert wait_for(lambda: newest_path() is not None, 10), rig.link.path_refused
+    p = newest_path()
+    # 11.1 m north straight ahead, then 3.9 m of the leg east: on the vehicle's right
+    assert np.allclose(p[0], [0, 0], atol=0.02)
+    assert abs(p[-1][0] - 11.13) < 0.05 and abs(p[-1][1] + 3.87) < 0.05
+    m = [x for x in rig.link.peers() if x.get("role") == "self"][0]["mission"]
+    assert m["state"] == "ready" and m["waypoints"] == 4 and m["path"] == "used"   # + home
+    asks = [e for e in v.find(ev="mission_rq") if e["src"] == [SYSID, 196]]
+    assert {e["type"] for e in asks} == {"MISSION_REQUEST_LIST", "MISSION_REQUEST_INT"}
+    assert any(e["src"] == [SYSID, 196] for e in v.find(ev="mission_ack"))
+    v.cmd("mode 4")                          # the operator takes it out of AUTO
+    assert wait_for(lambda: newest_path() is None, 5)
+    assert rig.link.path_refused == "vehicle not in its mission mode (custom mode 4)"
+    v.cmd("mode 10")
 
 
 # ---- direct, no MAVProxy (it drops malformed packets): udpin on the box side ------------------------

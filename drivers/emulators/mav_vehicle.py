@@ -15,9 +15,17 @@ line; prints one JSON event per line on stdout:
     garbage N               send N malformed packets (bad CRC, truncated, random bytes)
     nan                     send one ATTITUDE with NaN roll
     speed V                 ground speed in VFR_HUD
+    yaw DEG                 heading in ATTITUDE (clockwise from north)
+    pos LAT LON             position in GLOBAL_POSITION_INT (sent at the rate once set)
+    mission LAT,LON ...     the mission: item 0 home at the first point, then a NAV_WAYPOINT
+                            at each (global, degE7), served over the mission protocol
+    current N               MISSION_CURRENT's seq (sent at 1 Hz with the mission's total)
+    mission_mute N          leave the next N mission requests unanswered
     quit
 
 Events: {"ev": "ready"}, {"ev": "set_mode", "mode": 4, "confirmation": 0, "answer": "..."},
+{"ev": "mission_rq", "type": "MISSION_REQUEST_LIST" | "MISSION_REQUEST_INT", "seq": n,
+"answer": "sent" | "muted"} and {"ev": "mission_ack", "type": n} for the box's mission requests,
 {"ev": "rx", "type": "..."} for the first message of each type from the box; with --states also
 "hb", "od" and "vhb" (see --help).
 """
@@ -56,7 +64,8 @@ def main():
     a = ap.parse_args()
     m = mavutil.mavlink_connection(a.connection, source_system=a.sysid, source_component=1,
                                    dialect="ardupilotmega")
-    st = {"silent": False, "mode": 10, "refuse": 0, "drop": 0, "speed": 1.5, "nan": False}
+    st = {"silent": False, "mode": 10, "refuse": 0, "drop": 0, "speed": 1.5, "nan": False,
+          "yaw": 0.3, "pos": None, "mission": [], "current": 0, "mission_mute": 0}
     lock = threading.Lock()
     seen = set()
     box_seq = {}                      # (sysid, compid) -> last packet sequence number
@@ -81,6 +90,15 @@ def main():
                     st["speed"] = float(arg)
                 elif cmd == "nan":
                     st["nan"] = True
+                elif cmd == "yaw":
+                    st["yaw"] = math.radians(float(arg))
+                elif cmd == "pos":
+                    st["pos"] = (float(parts[1]), float(parts[2]))
+                elif cmd == "mission":
+                    pts = [tuple(float(v) for v in p.split(",")) for p in parts[1:]]
+                    st["mission"] = pts[:1] + pts if pts else []     # item 0: home
+                elif cmd in ("current", "mission_mute"):
+                    st[cmd] = int(arg)
                 elif cmd == "garbage":
                     for i in range(int(arg)):
                         good = m.mav.attitude_encode(0, 0.1, 0.0, 0.0, 0, 0, 0).pack(m.mav)
@@ -105,6 +123,8 @@ def main():
             with lock:
                 silent, mode, speed = st["silent"], st["mode"], st["speed"]
                 nan, st["nan"] = st["nan"], False
+                yaw, pos = st["yaw"], st["pos"]
+                current, total = st["current"], len(st["mission"])
             if not silent:
                 boot_ms = int((now - t0) * 1000)
                 if now - last_hb >= 1.0:
@@ -115,8 +135,15 @@ def main():
                                          mode, mavutil.mavlink.MAV_STATE_ACTIVE)
                     if a.states:
                         emit(ev="vhb", mode=mode, t=time.monotonic())
-                m.mav.attitude_send(boot_ms, math.nan if nan else 0.02, -0.05, 0.3, 0.0, 0.0,
+                    if total:
+                        m.mav.mission_current_send(current, max(0, total - 1))
+                m.mav.attitude_send(boot_ms, math.nan if nan else 0.02, -0.05, yaw, 0.0, 0.0,
                                     0.1)
+                if pos is not None:
+                    m.mav.global_position_int_send(
+                        boot_ms, int(round(pos[0] * 1e7)), int(round(pos[1] * 1e7)), 0, 0,
+                        int(speed * 100 * math.cos(yaw)), int(speed * 100 * math.sin(yaw)), 0,
+                        int(math.degrees(yaw) * 100) % 36000)
                 m.mav.vfr_hud_send(speed, speed, 17, 0, 0.0, 0.0)
         msg = m.recv_match(blocking=True, timeout=max(0.0, min(period, next_tick - now)))
         if msg is None:
@@ -136,6 +163,27 @@ def main():
         if t not in seen and t != "BAD_DATA":
             seen.add(t)
             emit(ev="rx", type=t, src=[msg.get_srcSystem(), msg.get_srcComponent()])
+        if t in ("MISSION_REQUEST_LIST", "MISSION_REQUEST_INT", "MISSION_REQUEST") and \
+                msg.target_system == a.sysid:
+            with lock:
+                mute = st["mission_mute"] > 0
+                st["mission_mute"] -= 1 if mute else 0
+                items = list(st["mission"])
+            src = (msg.get_srcSystem(), msg.get_srcComponent())
+            seq = getattr(msg, "seq", -1)
+            if not mute:
+                if t == "MISSION_REQUEST_LIST":
+                    m.mav.mission_count_send(*src, len(items))
+                elif 0 <= seq < len(items):
+                    lat, lon = items[seq]
+                    m.mav.mission_item_int_send(*src, seq, 6 if seq else 0, 16, 0, 1, 0, 0, 0,
+                                                0, int(round(lat * 1e7)),
+                                                int(round(lon * 1e7)), 0.0)
+            emit(ev="mission_rq", type=t, seq=seq, answer="muted" if mute else "sent",
+                 src=list(src))
+        elif t == "MISSION_ACK" and msg.target_system == a.sysid:
+            emit(ev="mission_ack", type=msg.type, src=[msg.get_srcSystem(),
+                                                       msg.get_srcComponent()])
         if t == "COMMAND_LONG" and msg.command == mavutil.mavlink.MAV_CMD_DO_SET_MODE:
             with lock:
                 if st["silent"]:

@@ -17,10 +17,11 @@ from hal.types import GateOutput, GateState, StereoCalibration
 
 class SimHub:
     def __init__(self, scene: str, seed: int, sensors: tuple[str, ...], stereo_scale: float,
-                 rate_hz: float = 10.0):
+                 rate_hz: float = 10.0, path: str = "route", mission_wp_radius_m: float = 2.0):
         from drivers.sim.field import SimField
         self.field = SimField(scene=scene, seed=seed, sensors=tuple(sensors),
-                              stereo_scale=stereo_scale, rate_hz=rate_hz)
+                              stereo_scale=stereo_scale, rate_hz=rate_hz, path=path,
+                              mission_wp_radius_m=mission_wp_radius_m)
         self.command: GateState | None = GateState.STOP
         self._last_ns: int | None = None
         self._sample = None
@@ -46,7 +47,8 @@ def hub_from_shared(shared: dict) -> SimHub:
     if hub is None:
         sc = shared["sim_config"]
         sensors = tuple(shared.get("sim_sensors", ("laser",)))
-        hub = SimHub(sc.scene, sc.seed, sensors, sc.stereo_scale, shared.get("rate_hz", 10.0))
+        hub = SimHub(sc.scene, sc.seed, sensors, sc.stereo_scale, shared.get("rate_hz", 10.0),
+                     path=sc.path, mission_wp_radius_m=sc.mission_wp_radius_m)
         shared["sim_hub"] = hub
     return hub
 

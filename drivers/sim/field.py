@@ -25,6 +25,10 @@ from .scenes import SCENES, Scene, build_scene
 from .vehicle import Vehicle
 from .world import MAT_OBSTACLE
 
+# where the vehicle state's planned path comes from ([sim] path): the route itself (what a
+# path can do at best), a survey mission's lane ends as the box builds it from an autopilot's
+# mission (drivers/mission_path.py), or none
+PATH_SOURCES = ("route", "mission", "none")
 SENSORS = ("stereo", "laser", "rgbd")
 STEREO_RANGE_M = (0.5, 50.0)       # obstacles farther than this are not "seen" by the stereo
 
@@ -70,7 +74,8 @@ class SimField:
     def __init__(self, scene: str = "stubble-day", seed: int = 0,
                  sensors: tuple[str, ...] = ("stereo", "laser", "rgbd"),
                  stereo_scale: float = 1.0, rate_hz: float = 10.0,
-                 decel_mps2: float = 2.5, start_speed_mps: float | None = None):
+                 decel_mps2: float = 2.5, start_speed_mps: float | None = None,
+                 path: str = "route", mission_wp_radius_m: float = 2.0):
         if scene not in SCENES:
             raise ValueError(f"unknown scene {scene!r}; known scenes: {', '.join(sorted(SCENES))}")
         bad = [s for s in sensors if s not in SENSORS]
@@ -78,6 +83,10 @@ class SimField:
             raise ValueError(f"unknown sensor(s) {bad}; known: {', '.join(SENSORS)}")
         if not 0.05 <= stereo_scale <= 1.0:
             raise ValueError(f"stereo_scale must be in [0.05, 1], got {stereo_scale}")
+        if path not in PATH_SOURCES:
+            raise ValueError(f"unknown path source {path!r}; known: {', '.join(PATH_SOURCES)}")
+        self.path_source = path
+        self.mission_wp_radius_m = float(mission_wp_radius_m)
         self.scene_name = scene
         self.seed = int(seed)
         self.sensors = tuple(sensors)
@@ -188,7 +197,15 @@ class SimField:
         _, _, yaw = self.vehicle.pose()
         return VehicleState(int(stamp_ns), int(seq), float(self.vehicle.speed),
                             float(self.vehicle.yaw_rate), float(roll), float(pitch), float(yaw),
-                            path_xy=self.vehicle.planned_path())
+                            path_xy=self._planned_path())
+
+    def _planned_path(self) -> np.ndarray | None:
+        """What the vehicle state carries as the planned path (``[sim] path``)."""
+        if self.path_source == "route":
+            return self.vehicle.planned_path()
+        if self.path_source == "mission":
+            return self.vehicle.mission_path(self.mission_wp_radius_m)
+        return None
 
     def render(self, stamp_ns: int, seq: int) -> SimSample:
         """Every sensor of the field at the current pose."""

@@ -86,6 +86,7 @@ class Vehicle:
         self._osc = rng.uniform(0, 2 * math.pi, 4)
         self._osc_f = rng.uniform([1.1, 1.9, 0.9, 1.6], [1.5, 2.6, 1.3, 2.2])
         self._footprints = [self._footprint_points(o) for o in scene.world.obstacles]
+        self._mission: tuple[np.ndarray, np.ndarray] | None = None
 
     # ---- path ---------------------------------------------------------------------------------
     def pose(self) -> tuple[float, float, float]:
@@ -115,6 +116,42 @@ class Vehicle:
         c, sn = math.cos(yaw), math.sin(yaw)
         dx, dy = wx - x, wy - y
         return np.stack([dx * c + dy * sn, -dx * sn + dy * c], axis=1)
+
+    def mission_waypoints(self) -> tuple[np.ndarray, np.ndarray]:
+        """The route as a survey mission would give it (``[sim] path = "mission"``): each
+        lane's start and end, world (x, y) (N, 2), and their route distances (N,). The turns
+        between lanes are the autopilot's own, not in the mission."""
+        if self._mission is None:
+            s = sorted({float(v) for ab in self.scene.lanes for v in ab})
+            if not s or s[-1] < self.path_length_m - 1e-6:
+                s.append(self.path_length_m)
+            s = np.array(s, np.float64)
+            p = self.scene.path
+            xy = np.stack([np.interp(s, self._s, p[:, 0]), np.interp(s, self._s, p[:, 1])], 1)
+            self._mission = (xy, s)
+        return self._mission
+
+    def mission_current(self, wp_radius_m: float = 2.0) -> int | None:
+        """The waypoint the autopilot heads for: the first one ahead on the route that the
+        vehicle's origin is not within ``wp_radius_m`` of (ArduPilot Rover's WP_RADIUS: a
+        waypoint is reached that near); None once the last is reached."""
+        xy, s = self.mission_waypoints()
+        x, y, _ = self.pose()
+        for i in range(len(s)):
+            if s[i] > self.s and math.hypot(xy[i, 0] - x, xy[i, 1] - y) > wp_radius_m:
+                return i
+        return None
+
+    def mission_path(self, wp_radius_m: float = 2.0, reach_m: float = 15.0,
+                     step_m: float = 0.25) -> np.ndarray | None:
+        """The planned path as the box builds it from an autopilot's mission
+        (drivers/mission_path.py): from the origin to the current waypoint, then along the
+        lanes' ends, in the vehicle frame. None once the mission is done."""
+        from drivers.mission_path import path_ahead
+        i = self.mission_current(wp_radius_m)
+        if i is None:
+            return None
+        return path_ahead(self.pose(), self.mission_waypoints()[0], i, reach_m, step_m)
 
     def _curvature(self) -> float:
         ds = 0.5
