@@ -258,6 +258,8 @@ def format_status(doc: dict) -> str:
         lines.append(f"picture {o['occupied_cells']} occupied cells, stop zone {o['stop_zone_m']} m,"
                      f" in stop {o['in_stop_zone']}, in slow {o['in_slow_zone']}, "
                      f"nearest {o['nearest_m']} m")
+        if o.get("zones_along"):                      # [zones] follow_path is on
+            lines.append(f"zones   along {o['zones_along']}")
     for t in doc.get("tracks", []):
         lines.append(f"  track {t['id']:<5} {t['distance_m']:5.1f} m  x {t['x_m']:6.2f} y "
                      f"{t['y_m']:6.2f}  {t['length_m']:.1f}x{t['width_m']:.1f} m  v "

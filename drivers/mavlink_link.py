@@ -18,6 +18,10 @@ In, in the acquisition thread: ATTITUDE, VFR_HUD, GLOBAL_POSITION_INT, LOCAL_POS
 and attitude -> VehicleState), HEARTBEAT (mode), COMMAND_ACK. A stale autopilot is NO_DATA; a
 burst of malformed packets or non-finite values is a fault.
 
+With ``mission_path``: the autopilot's mission, downloaded over the mission protocol
+(drivers/mavlink_mission.py), and MISSION_CURRENT -> the planned path in VehicleState.path_xy
+while the vehicle is in ``auto_custom_mode`` (``[zones] follow_path``; docs/vehicle-links.md).
+
 Every write is non-blocking: a socket or serial port that would block is a failed send, never a
 stall of the 10 Hz loop.
 """

@@ -263,3 +263,13 @@ def test_decision_refuses_a_path_heading_off_the_vehicle():
     ahead = np.array([[0.0, 0.0], [1.0, 0.3], [5.0, 1.0]])         # 17 deg: used
     bend = core._bend(VehicleState(0, 1, 1.0, 0.0, 0.0, 0.0, 0.0, path_xy=ahead))
     assert bend != 0.0 and core.path_refused == ""
+
+
+def test_status_text_says_what_the_zones_lie_along():
+    from appliance.cli import format_status
+    o = {"occupied_cells": 0, "stop_zone_m": 2.0, "in_stop_zone": False, "in_slow_zone": False,
+         "nearest_m": None, "zones_along": "planned path not used: it heads +90 deg off the "
+                                           "vehicle's heading"}
+    text = format_status({"obstacles": o})
+    assert "zones   along planned path not used: it heads +90 deg" in text
+    assert "zones   along" not in format_status({"obstacles": dict(o, zones_along=None)})
