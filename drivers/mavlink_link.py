@@ -36,9 +36,9 @@ import socket
 import threading
 import time
 
+from drivers.mavlink_mission import MissionReader
 from hal.devices import VehicleLink
 from hal.errors import DeviceInitializationError, DeviceOperationError
-from drivers.mavlink_mission import MissionReader
 from hal.types import GateOutput, GateState, VehicleState
 
 log = logging.getLogger("fieldguard.link.mavlink")
@@ -198,7 +198,7 @@ class MavlinkVehicleLink(VehicleLink):
         self.last_wire_ns: int | None = None
         # the planned path from the autopilot's mission ([zones] follow_path)
         self.mission = (MissionReader(sysid, COMP_ID_OBSTACLE_AVOIDANCE,
-                                      auto_custom_mode=auto_custom_mode, fresh_s=timeout_s)
+                                      auto_custom_mode=auto_custom_mode)
                         if mission_path else None)
         self._gpos = None           # (t, lat, lon) degrees
         self._lpos = None           # (t, north, east) metres

@@ -5,8 +5,9 @@ The box is a mission client as a ground station is (mavlink.io "Mission Protocol
 MISSION_REQUEST_LIST -> MISSION_COUNT -> MISSION_REQUEST_INT(i) -> MISSION_ITEM_INT(i) ...
 -> MISSION_ACK, each request retried after ``retry_s`` up to ``retries`` times. It downloads
 when the vehicle first appears, again when the mission changes (MISSION_CURRENT's ``total``
-changes, or the vehicle acknowledges someone else's upload) and every ``refresh_s``. While a
-download runs, the old mission is not used (straight zones).
+changes, or the vehicle acknowledges someone else's upload) and every ``refresh_s``. After a
+change, or a failed read, no mission is used until one is read (straight zones); a periodic
+re-read keeps using the one it has.
 
 The path (drivers/mission_path.py) is laid only while the vehicle flies its mission (its
 HEARTBEAT's custom mode is ``auto_custom_mode``: ArduPilot Rover AUTO = 10; PX4 AUTO.MISSION =
@@ -32,13 +33,11 @@ MISSION_TYPE_MISSION = 0
 class MissionReader:
     def __init__(self, sysid: int, compid: int, *, auto_custom_mode: int = 10,
                  retry_s: float = 0.5, retries: int = 5, refresh_s: float = 30.0,
-                 max_items: int = 2000, reach_m: float = 15.0, step_m: float = 0.25,
-                 fresh_s: float = 0.5):
+                 max_items: int = 2000, reach_m: float = 15.0, step_m: float = 0.25):
         self.sysid, self.compid = sysid, compid
         self.auto_custom_mode = auto_custom_mode
         self.retry_s, self.retries, self.refresh_s = retry_s, retries, refresh_s
         self.max_items, self.reach_m, self.step_m = max_items, reach_m, step_m
-        self.fresh_s = fresh_s
         self.state = "idle"              # idle | downloading | ready | failed
         # the waypoints below are this mission's (a periodic re-read keeps using them; a
         # change, a failure or the first read does not)
