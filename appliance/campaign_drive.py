@@ -345,9 +345,13 @@ class Drive:
         contact part and the box's cells are judged there). With a ``curvature_1pm`` (the box's zones
         bent along a turn, ``[zones] follow_turn``) all of it is judged in the path's frame
         (appliance/zones.to_path_frame): the corridor is the arc the vehicle drives; with a
-        zones.PathBend (``follow_path``) the planned path's corridor, and a walker's meeting
-        is judged straight ahead, as the movers' decision judges it."""
+        zones.PathBend (``follow_path``) the corridor of the route the vehicle really drives
+        (``_driven``: not the box's planned path, which can be an autopilot's legs that cut a
+        turn), and a walker's meeting is judged straight ahead, as the movers' decision
+        judges it."""
         z = self.zones
+        if isinstance(curvature_1pm, PathBend):
+            curvature_1pm = self._driven(curvature_1pm)
         rear = self.scene.footprint[0]
         x, y, _ = self.vehicle.pose()
         out = []
@@ -387,6 +391,18 @@ class Drive:
                         <= stop_len_m + z.slow_extra_m + self.zone_tol_m,
                         "deep": bool(deep.any())})
         return out
+
+    def _driven(self, bend: PathBend) -> PathBend:
+        """The zones of ``bend`` (the box's, along its planned path) laid along the route the
+        simulated vehicle will really drive, for judging what was in them. The box's path is
+        the route itself with ``[sim] path = "route"`` (the same corridor), an autopilot's legs
+        with ``"mission"`` (which go straight where the vehicle turns). Off the route (the
+        driver's detour) the box's own corridor."""
+        route = self.vehicle.planned_path(reach_m=bend.reach_m + 1.0)
+        if len(route) < 2 or math.hypot(*route[0]) > self.zones.path_max_offset_m:
+            return bend
+        return PathBend(route, bend.front_x_m, bend.half_width_m, reach_m=bend.reach_m,
+                        rear_m=bend.rear_m)
 
     def _meets(self, o, p: np.ndarray, rear: float, curvature_1pm: float) -> dict:
         """``meets`` / ``meets_slow``: a walker walking now that, going on at its true velocity

@@ -217,3 +217,30 @@ def test_the_campaign_judges_contact_and_held_cells_in_the_vehicle_frame():
         assert any(not np.allclose(b["pts"], b["pts_vehicle"]) for b in bent)
     finally:
         drv.daemon.shutdown()
+
+
+def test_the_campaign_judges_a_path_box_on_the_route_driven_not_on_its_own_path():
+    """A box following an autopilot's legs ([sim] path = "mission") lays its zones where the
+    vehicle does not drive in a turn; the campaign judges what was in the zones along the
+    route the vehicle really drives: the same truth as for a box given the route itself."""
+    from appliance.campaign_drive import Drive, deep_merge, drive_config_data
+    data = deep_merge(drive_config_data("greenhouse-coverage", 7),
+                      {"zones": {"follow_path": True}, "sim": {"path": "mission"}})
+    drv = Drive("greenhouse-coverage", 7, 0.01, config_data=data).build()
+    try:
+        v = drv.vehicle
+        turns = np.flatnonzero(np.abs(np.diff(v._yaw)) > 0.02)
+        v.s = float(v._s[turns[0]]) + 1.0             # in the first U-turn
+        route = DecisionCore(parse_config(data, "t"))._bend(
+            VehicleState(0, 0, speed_mps=0.7, path_xy=v.planned_path()))
+        legs = PathBend(v.mission_path(), route.front_x_m, route.half_width_m,
+                        reach_m=route.reach_m, rear_m=route.rear_m)
+        assert not np.allclose(legs.o, route.o, atol=0.3)      # the legs cut the turn
+        driven = drv._driven(legs)
+        assert np.allclose(driven.o, route.o) and np.allclose(driven.yaw, route.yaw)
+        by_legs, by_route = drv.truth(2.0, legs), drv.truth(2.0, route)
+        assert by_route and [o["id"] for o in by_legs] == [o["id"] for o in by_route]
+        for a, b in zip(by_legs, by_route):
+            assert np.array_equal(a["pts"], b["pts"]) and a["deep"] == b["deep"]
+    finally:
+        drv.daemon.shutdown()
