@@ -67,8 +67,9 @@ class ZonesConfig:
                                   doc="follow_turn: curvatures beyond this (a radius under "
                                       "1/this) are taken as this")
     follow_path: bool = _f(False, doc="lay the stop and slow zones along the path the vehicle "
-                                      "will drive, when its autopilot sends one (the "
-                                      "simulator: its route); without a usable path this "
+                                      "will drive, when its vehicle link hands one on (the "
+                                      "MAVLink link's mission_path; the simulator: [sim] "
+                                      "path); without a usable path this "
                                       "cycle, the zones are straight (or follow_turn's)")
     body_rear_m: float = _f(0.0, lo=0.0, hi=20.0,
                             doc="follow_path: how far the vehicle's body reaches behind its "
