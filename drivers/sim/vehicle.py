@@ -35,6 +35,7 @@ import math
 
 import numpy as np
 
+from drivers.mission_path import path_ahead
 from hal.types import GateState, rotation_rpy
 
 from .scenes import Scene
@@ -147,7 +148,6 @@ class Vehicle:
         """The planned path as the box builds it from an autopilot's mission
         (drivers/mission_path.py): from the origin to the current waypoint, then along the
         lanes' ends, in the vehicle frame. None once the mission is done."""
-        from drivers.mission_path import path_ahead
         i = self.mission_current(wp_radius_m)
         if i is None:
             return None
