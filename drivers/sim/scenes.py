@@ -874,12 +874,21 @@ def _greenhouse_coverage(kind: str, seed: int) -> Scene:
             o = _person(orng, f"g{len(obs) + 1}", x, y, "standing")
             s_cross = s0 + run_out + (x if fwd else length - x)
             obs.append(_walker(orng, o, y, x, s_cross, 0.7, side_m=(0.9, 1.4)))
+    n_drawn = len(obs)
     for end in (0.0, length):                            # in the end bays (the headlands)
         if orng.uniform() < 0.5:
             y = float(orng.uniform(0, (passes - 1) * period))
             x = end - float(orng.uniform(0.3, 1.0)) if end == 0.0 else end + float(orng.uniform(0.3, 1.0))
-            o = _thing(orng, f"g{len(obs) + 1}", x, y, things, protos)
+            n_drawn += 1
+            o = _thing(orng, f"g{n_drawn}", x, y, things, protos)
             o.placement = "headland"
+            # not where the vehicle stands at its start (the first lane's run-out, its body
+            # reaching from x = -run_out - 0.1 to 1.1 m ahead of that): such a thing was under
+            # the vehicle at boot, a "collision" at 0.2 s that no box could avoid (until
+            # 2026-12: greenhouse-coverage 92, 1025, 1026). Drawn all the same, so that every
+            # other draw and id stays as it was.
+            if end == 0.0 and abs(y) < 0.4 + o.radius:
+                continue
             obs.append(o)
     if kind == "greenhouse-crossing":     # the same house (its draws above), only walkers
         obs = _greenhouse_walkers(np.random.default_rng([seed, 33]), length, period, passes,
