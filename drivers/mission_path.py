@@ -62,10 +62,19 @@ def path_ahead(pose: tuple[float, float, float], waypoints, current: int,
     end = min(reach_m, float(s[-1]))
     if end <= 0.0:
         return None
-    ss = np.append(np.arange(0.0, end, step_m), end)
     keep = np.concatenate([[True], seg > 1e-9])          # a waypoint on the one before: no leg
-    wx = np.interp(ss, s[keep], pts[keep, 0])
-    wy = np.interp(ss, s[keep], pts[keep, 1])
+    return polyline_ahead(pts[keep], s[keep], 0.0, reach_m, step_m, (x, y, yaw))
+
+
+def polyline_ahead(pts: np.ndarray, s: np.ndarray, s0: float, reach_m: float, step_m: float,
+                   pose: tuple[float, float, float]) -> np.ndarray:
+    """The polyline ``pts`` (N, 2; ``s`` its arc lengths, increasing) from ``s0`` on for
+    ``reach_m`` (or to its end), every ``step_m`` and at that end, in the frame of ``pose``
+    (x ahead, y left). Shared by the mission's legs and the simulator's route ahead."""
+    end = min(s0 + reach_m, float(s[-1]))
+    ss = np.append(np.arange(s0, end, step_m), end)
+    wx, wy = np.interp(ss, s, pts[:, 0]), np.interp(ss, s, pts[:, 1])
+    x, y, yaw = pose
     c, sn = math.cos(yaw), math.sin(yaw)
     dx, dy = wx - x, wy - y
     return np.stack([dx * c + dy * sn, -dx * sn + dy * c], axis=1)

@@ -35,7 +35,7 @@ import math
 
 import numpy as np
 
-from drivers.mission_path import path_ahead
+from drivers.mission_path import path_ahead, polyline_ahead
 from hal.types import GateState, rotation_rpy
 
 from .scenes import Scene
@@ -108,15 +108,8 @@ class Vehicle:
         the origin follows from here for ``reach_m`` (to the route's end), every ``step_m``,
         in the vehicle frame (x ahead, y left). Off the route (a detour) it starts where the
         route is, beside the vehicle."""
-        p = self.scene.path
         s0 = min(max(self.s, 0.0), self.path_length_m)
-        s = np.append(np.arange(s0, min(s0 + reach_m, self.path_length_m), step_m),
-                      min(s0 + reach_m, self.path_length_m))
-        wx, wy = np.interp(s, self._s, p[:, 0]), np.interp(s, self._s, p[:, 1])
-        x, y, yaw = self.pose()
-        c, sn = math.cos(yaw), math.sin(yaw)
-        dx, dy = wx - x, wy - y
-        return np.stack([dx * c + dy * sn, -dx * sn + dy * c], axis=1)
+        return polyline_ahead(self.scene.path, self._s, s0, reach_m, step_m, self.pose())
 
     def mission_waypoints(self) -> tuple[np.ndarray, np.ndarray]:
         """The route as a survey mission would give it (``[sim] path = "mission"``): each
