@@ -273,3 +273,27 @@ def test_status_text_says_what_the_zones_lie_along():
     text = format_status({"obstacles": o})
     assert "zones   along planned path not used: it heads +90 deg" in text
     assert "zones   along" not in format_status({"obstacles": dict(o, zones_along=None)})
+
+
+def test_the_link_hands_no_path_on_an_aged_position():
+    """The MAVLink link lays the mission's path only on a position younger than its timeout:
+    an aged GLOBAL_POSITION_INT (the autopilot stopped sending it) is no path, with the
+    reason, while the same mission and mode with a fresh one give the path."""
+    import time
+    from drivers.mavlink_link import MavlinkVehicleLink
+    from hal import MonotonicClock
+    link = MavlinkVehicleLink("link", MonotonicClock(), 0.5, sysid=42, mission_path=True)
+    _download(link.mission, Wire(ITEMS))
+    link.mission.on_message("MISSION_CURRENT", NS(seq=1, total=3), 0.0)
+    link._vehicle_mode = 10
+    now = time.monotonic()
+    link._gpos = (now - 0.1, LAT0, LON0)
+    p = link._planned_path(now, 0.0)
+    assert p is not None and link.path_refused == "" and link.counters["paths_sent"] == 1
+    link._gpos = (now - 0.6, LAT0, LON0)               # older than the link's 0.5 s timeout
+    assert link._planned_path(now, 0.0) is None
+    assert link.path_refused == "no fresh GLOBAL_POSITION_INT"
+    assert [x for x in link.peers() if x["role"] == "self"][0]["mission"]["path"] == \
+        "no fresh GLOBAL_POSITION_INT"
+    off = MavlinkVehicleLink("link", MonotonicClock(), 0.5, sysid=42)   # mission_path off
+    assert off._planned_path(now, 0.0) is None and off.mission is None
