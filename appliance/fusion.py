@@ -141,10 +141,14 @@ class GridFusion:
 
     # -- update -----------------------------------------------------------------------------
     def update(self, points_xy: np.ndarray, vehicle: VehicleState | None,
-               stamp_ns: int, confirmed_xy: np.ndarray | None = None) -> np.ndarray:
+               stamp_ns: int, confirmed_xy: np.ndarray | None = None,
+               sustain_xy: np.ndarray | None = None) -> np.ndarray:
         """Integrate this cycle's points; return the occupied cell centres (M, 2).
         ``confirmed_xy``: points (among ``points_xy`` or not) whose cells are occupied at once
-        (evidence raised to ``occupied_at``: :func:`confirmed_points`)."""
+        (evidence raised to ``occupied_at``: :func:`confirmed_points`). ``sustain_xy``: points
+        that count as hits only in cells whose carried-over evidence is at least
+        ``sustain_min_evidence`` (height hysteresis: they keep, never start, and never spread
+        an obstacle: a neighbouring cell is not theirs to fill)."""
         dt = 0.0 if self._last_ns is None else (stamp_ns - self._last_ns) / 1e9
         self._last_ns = stamp_ns
         if dt > 2.0 or dt < 0:   # a gap (restart, stale sensors) or a clock step back: old
@@ -162,6 +166,12 @@ class GridFusion:
         if len(pts):
             ix, iy, ok = self.cell_index(pts)
             hit[ix[ok], iy[ok]] = True
+        if sustain_xy is not None and len(sustain_xy) and self.cfg.sustain_min_evidence > 0:
+            ix, iy, ok = self.cell_index(np.asarray(sustain_xy, np.float64).reshape(-1, 2))
+            ix, iy = ix[ok], iy[ok]
+            held = self.evidence[ix, iy] >= np.float32(self.cfg.sustain_min_evidence) - 1e-6
+            hit[ix[held], iy[held]] = True
+        if len(pts) or (sustain_xy is not None and len(sustain_xy)):
             self.evidence += hit
         if confirmed_xy is not None and len(confirmed_xy):
             ix, iy, ok = self.cell_index(np.asarray(confirmed_xy, np.float64).reshape(-1, 2))

@@ -163,6 +163,16 @@ def main(argv=None) -> int:
             f"{v:.2f}" for v in np.percentile(h[keep][kn], [10, 50, 90]))
         cells = np.asarray(res.cells_xy, float).reshape(-1, 2)
         n_cells = int(near(cells).sum()) if len(cells) else 0
+        # every matched point near it (band or not): how high the stereo read it
+        an = near(pts) if len(pts) else np.zeros(0, bool)
+        hall = "-" if not an.any() else "/".join(
+            f"{v:.2f}" for v in np.percentile(h[an], [10, 50, 90]))
+        # the grid's largest evidence on it (its footprint + 0.5 m), after this cycle
+        grid = d.daemon.loop.grid
+        gx = grid.centres(*np.nonzero(grid.evidence > 0))
+        ev = grid.evidence[grid.evidence > 0]
+        gn = near(gx) if len(gx) else np.zeros(0, bool)
+        evmax = float(ev[gn].max()) if gn.any() else 0.0
         fr = res.inputs.stereo
         cal = fr.calib
         R = cal.mount.camera_to_vehicle()
@@ -185,7 +195,8 @@ def main(argv=None) -> int:
                        else str(int(m[mv, mu])))
         print(f"t={t:6.1f} {res.output.state.value:5s} ahead {ox - d.zones.front_x_m:6.2f} m "
               f"side {oy:+5.2f} m  {view:5s}  points {n_all:4d} (band {int(kn.sum()):4d}, "
-              f"h {hs})  cells {n_cells:3d}  novel {'/'.join(nov)}  "
+              f"h {hs}; all h {hall})  cells {n_cells:3d} (evidence {evmax:.2f})  "
+              f"novel {'/'.join(nov)}  "
               f"updates {pipe.novelty.model.updates}  {res.output.reason[:60]}", flush=True)
         if pic_dir is not None:
             import cv2
