@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from appliance.config import GridConfig
-from hal.types import VehicleState
+from hal.types import VehicleState, move_with_vehicle  # noqa: F401 (re-exported)
 
 
 def _cells(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -23,22 +23,6 @@ def _cells(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     flat indices: several times faster on the grid's 96 k cells."""
     ix, iy = np.divmod(np.flatnonzero(mask), mask.shape[1])
     return ix, iy
-
-
-def move_with_vehicle(xy: np.ndarray, dt_s: float, vehicle: VehicleState | None) -> np.ndarray:
-    """Vehicle-frame points fixed in the world, ``dt_s`` later: the grid's own ego-motion
-    (:meth:`GridFusion._ego_motion`) for points (speed and yaw rate over the interval; a point
-    at p is at R(-dth) (p - t) in the new frame, t the chord of the arc driven)."""
-    p = np.asarray(xy, np.float64).reshape(-1, 2)
-    if vehicle is None or dt_s <= 0 or not len(p):
-        return p
-    dx = vehicle.speed_mps * dt_s
-    dth = vehicle.yaw_rate_radps * dt_s
-    if not (math.isfinite(dx) and math.isfinite(dth)) or (abs(dx) < 1e-9 and abs(dth) < 1e-12):
-        return p
-    cos, sin = math.cos(-dth), math.sin(-dth)
-    t = np.array([dx * math.cos(dth / 2), dx * math.sin(dth / 2)])
-    return (p - t) @ np.array([[cos, -sin], [sin, cos]]).T
 
 
 class GridFusion:

@@ -38,6 +38,22 @@ class Mount:
         return np.array([self.x_m, self.y_m, self.z_m], dtype=np.float64)
 
 
+def move_with_vehicle(xy: np.ndarray, dt_s: float, vehicle: "VehicleState | None") -> np.ndarray:
+    """Vehicle-frame points fixed in the world, ``dt_s`` later: the grid's own ego-motion
+    (``appliance.fusion.GridFusion._ego_motion``) for points (speed and yaw rate over the interval; a point
+    at p is at R(-dth) (p - t) in the new frame, t the chord of the arc driven)."""
+    p = np.asarray(xy, np.float64).reshape(-1, 2)
+    if vehicle is None or dt_s <= 0 or not len(p):
+        return p
+    dx = vehicle.speed_mps * dt_s
+    dth = vehicle.yaw_rate_radps * dt_s
+    if not (math.isfinite(dx) and math.isfinite(dth)) or (abs(dx) < 1e-9 and abs(dth) < 1e-12):
+        return p
+    cos, sin = math.cos(-dth), math.sin(-dth)
+    t = np.array([dx * math.cos(dth / 2), dx * math.sin(dth / 2)])
+    return (p - t) @ np.array([[cos, -sin], [sin, cos]]).T
+
+
 def rotation_rpy(roll: float, pitch_down: float, yaw: float) -> np.ndarray:
     """Body->parent rotation for roll (about x), pitch (positive nose DOWN) and yaw (about z, left
     positive). Applied as yaw, then pitch, then roll (intrinsic z-y-x)."""

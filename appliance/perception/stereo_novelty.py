@@ -21,6 +21,8 @@ import numpy as np
 
 from appliance.schema import _f
 
+from hal.types import move_with_vehicle
+
 from .base import Detections, Pipeline, SensorInputs
 from .cue import CueOptions, LearnedCue
 from .candidates import cluster_candidates, stalk_points
@@ -270,6 +272,17 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
                                        "frame calls much of the field novel: at start-up the "
                                        "low band stopped a training drive for its stubble at "
                                        "2.7 s); 0 = from the first frame")
+    # thirty-eighth session (docs/front-end.md "Looking again where something was"): the
+    # same dog is matched only in the frames the depth cue happens to raise its cells (5 of
+    # 50 on its way in); its band hits never come two cycles running
+    recall_frames: int = _f(0, lo=0, hi=100,
+                            doc="the obstacle points of the last this many frames, carried "
+                                "with the vehicle's motion (speed, yaw rate) and projected "
+                                "into the camera, raise their novelty cells for matching "
+                                "(cue \"recent\"): what was found once is looked at again in "
+                                "the next frames, whatever raised it then. 0 = off")
+    recall_dilate_cells: int = _f(1, lo=0, hi=10,
+                                  doc="recall_frames: dilation of the recalled cells")
     # thirty-eighth session (measured in docs/front-end.md "Height hysteresis"): a head-on
     # dog 0.55 m high is seen in the band from 12 m (its back 0.52-0.74 m), then its points
     # fall under 0.5 m as it comes near (heights read lower near the bottom of the view) and
@@ -401,6 +414,10 @@ class StereoNoveltyPipeline(Pipeline):
         self._source_masks: dict = {}          # cue name -> camera mask (1/kd) of this frame
         self._canopy_src = None                # (points, pixels, factor) of the coarse pass
         self._canopies: deque = deque(maxlen=self.options.canopy_frames)   # canopy_floor
+        # recall_frames: per recent frame its obstacle points (vehicle frame, x y z), moved
+        # with the vehicle each frame; the stamp and vehicle of the last move
+        self._recall: deque = deque(maxlen=max(1, self.options.recall_frames))
+        self._recall_ns: int | None = None
 
     # ---- the regions that get dense stereo -------------------------------------------------
     def _cells_to_match(self, res, size_wh: tuple[int, int], extra: dict) -> np.ndarray:
@@ -463,6 +480,8 @@ class StereoNoveltyPipeline(Pipeline):
         cues = {}
         if o.depth_cue != "off":
             cues["depth"] = self._depth_cue(fr, vehicle, res, kd)
+        if o.recall_frames > 0:
+            cues["recent"] = self._recall_cue(fr, vehicle, res, kd)
         if self.cue.enabled:
             # on the camera-frame image the novelty grid was computed on (1/kd); a pixel mask
             # of that size (the model's cells need not be the novelty grid's)
@@ -473,6 +492,53 @@ class StereoNoveltyPipeline(Pipeline):
 
     def notes(self) -> dict:
         return self.cue.notes()
+
+    def _recall_cue(self, fr, vehicle, res, kd: int) -> np.ndarray | None:
+        """``recall_frames``: the novelty cells (camera frame, 1/``kd``) where the obstacle
+        points of the last frames lie now, the vehicle's motion since taken into account
+        (a point fixed in the world); None when there are none."""
+        o: StereoNoveltyConfig = self.options
+        dt = 0.0 if self._recall_ns is None else (fr.stamp_ns - self._recall_ns) * 1e-9
+        self._recall_ns = fr.stamp_ns
+        if dt < 0 or dt > 2.0:                 # a clock step or a gap: the past means nothing
+            self._recall.clear()
+        elif dt > 0 and vehicle is not None:
+            for i, p in enumerate(self._recall):
+                if len(p):
+                    q = p.copy()
+                    q[:, :2] = move_with_vehicle(p[:, :2], dt, vehicle)
+                    self._recall[i] = q
+        pts = [p for p in self._recall if len(p)]
+        if not pts:
+            return None
+        p = np.concatenate(pts)
+        cal = scaled_calibration(fr.calib, kd)
+        cam = cal.camera
+        q = (p - np.asarray(cal.mount.position)) @ cal.mount.camera_to_vehicle()
+        ahead = q[:, 2] > 0.1
+        if not ahead.any():
+            return None
+        q = q[ahead]
+        u = cam.fx * q[:, 0] / q[:, 2] + cam.cx
+        v = cam.fy * q[:, 1] / q[:, 2] + cam.cy
+        rows, cols = res.mask.shape
+        ci, cj = np.floor(v / res.cell_px), np.floor(u / res.cell_px)
+        ok = (ci >= 0) & (ci < rows) & (cj >= 0) & (cj < cols)
+        out = np.zeros((rows, cols), bool)
+        out[ci[ok].astype(np.int64), cj[ok].astype(np.int64)] = True
+        return dilate_cells(out, o.recall_dilate_cells) if out.any() else None
+
+    def _remember(self, pts: np.ndarray) -> None:
+        """``recall_frames``: keep this frame's obstacle points (one per 0.1 m cube: a tall
+        thing keeps its height, whose cells are one above the other)."""
+        if self.options.recall_frames <= 0:
+            return
+        if not len(pts):
+            self._recall.append(np.zeros((0, 3)))
+            return
+        key = np.floor(pts / 0.1).astype(np.int64)
+        _, first = np.unique(key, axis=0, return_index=True)
+        self._recall.append(np.asarray(pts, np.float64)[np.sort(first)])
 
     def _depth_cue(self, fr, vehicle, res, kd: int) -> np.ndarray:
         """Coarse full-frame stereo (``depth_cue`` matcher, image at most
@@ -717,6 +783,7 @@ class StereoNoveltyPipeline(Pipeline):
                                        known_min=o.support_known_min)
                 sus[idx[sup < o.support_min]] = False
             sustain_xy = dedupe_cells(pts[sus, :2])
+        self._remember(pts[keep])
         xy = dedupe_cells(pts[keep, :2])
         cands = self._candidates(disp, pts[keep], px[keep], h[keep], k / float(kd))
         t3, c3 = time.perf_counter(), time.thread_time()
