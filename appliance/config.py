@@ -124,15 +124,18 @@ class GridConfig:
                                    "recurrence (the laser too: a tuft top it grazes comes and "
                                    "goes; docs/proving-ground.md 'Tuft tops'); [\"laser\"] was "
                                    "the default before")
-    sustain_min_evidence: float = _f(0.7, lo=0.0, hi=100.0,
-                                     doc="height hysteresis (a pipeline's sustaining points, "
-                                         "e.g. stereo-novelty's sustain_band_min_m): a "
-                                         "sustaining point counts as a hit only in a cell whose "
-                                         "evidence, carried over from the cycles before, is "
-                                         "at least this (0.7 = occupied_at x decay: occupied "
-                                         "the cycle before); in no other cell, so it can keep "
-                                         "an obstacle but neither start one nor spread it; "
-                                         "0 = sustaining points are ignored")
+    sustain_cycles: int = _f(5, lo=0, hi=100,
+                             doc="height hysteresis (a pipeline's sustaining points, e.g. "
+                                 "stereo-novelty's sustain_band_min_m): a sustaining point "
+                                 "counts as a hit only within sustain_radius_m of a cell that "
+                                 "the band's own points (not sustaining ones) made occupied in "
+                                 "the last this many cycles, so it can keep an obstacle but "
+                                 "neither start one nor carry one across the field; 0 = "
+                                 "sustaining points are ignored")
+    sustain_radius_m: float = _f(0.2, lo=0.0, hi=2.0,
+                                 doc="height hysteresis: how far from such a cell (an "
+                                     "obstacle's points jitter by a cell or two from frame to "
+                                     "frame)")
     confirm_points: int = _f(300, lo=0, hi=1_000_000,
                              doc="fewer frames when near and large (issue #14): the cells hit "
                                  "by the points of a candidate with at least this many points "

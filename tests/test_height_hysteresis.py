@@ -49,57 +49,70 @@ def test_an_obstacle_seen_in_the_band_is_kept_by_its_sustaining_points_and_fades
     held, plain = _grid(), _grid()
     for i in range(3):                           # seen in the band: occupied
         for g in (held, plain):
-            g.update(_pts((5.05, 0.05)), None, i * NS)
+            g.update(_pts((5.05, 0.05)), None, i * NS, sustain_xy=NONE if g is held else None)
     assert len(held.occupied()) == 1
-    for i in range(3, 20):                       # then only between the two floors
+    for i in range(3, 7):                        # then only between the two floors: kept
         occ = held.update(NONE, None, i * NS, sustain_xy=_pts((5.05, 0.05)))
         assert len(occ) == 1, i
         plain.update(NONE, None, i * NS)
     assert len(plain.occupied()) == 0            # the papers' grid lets it fade
-    for i in range(20, 23):                      # nothing at all: it fades
-        occ = held.update(NONE, None, i * NS)
+    # kept for sustain_cycles (5) after the band last made it occupied (cycle 2), no longer
+    occ = held.update(NONE, None, 7 * NS, sustain_xy=_pts((5.05, 0.05)))
     assert len(occ) == 0
+    # seen in the band again: kept again
+    for i in range(8, 10):
+        held.update(_pts((5.05, 0.05)), None, i * NS, sustain_xy=NONE)
+    for i in range(10, 14):
+        assert len(held.update(NONE, None, i * NS, sustain_xy=_pts((5.05, 0.05)))) == 1
 
 
-def test_sustaining_points_never_spread_an_obstacle_into_the_cells_around_it():
-    g = _grid()
+def test_sustaining_points_jitter_within_the_radius_and_never_carry_it_further():
+    g = _grid()                                  # sustain_radius_m 0.2: two cells
     for i in range(3):
-        g.update(_pts((5.05, 0.05)), None, i * NS)
-    ring = _pts(*[(5.05 + 0.1 * dx, 0.05 + 0.1 * dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1)])
-    for i in range(3, 30):
-        occ = g.update(NONE, None, i * NS, sustain_xy=ring)
-        assert len(occ) == 1 and np.allclose(occ[0], (5.05, 0.05)), i
+        g.update(_pts((5.05, 0.05)), None, i * NS, sustain_xy=NONE)
+    occ = g.update(NONE, None, 3 * NS, sustain_xy=_pts((5.25, 0.05)))   # two cells on
+    assert len(occ) == 0                          # one hit: evidence 1, not occupied
+    occ = g.update(NONE, None, 4 * NS, sustain_xy=_pts((5.25, 0.05), (5.45, 0.05)))
+    assert len(occ) == 1 and np.allclose(occ[0], (5.25, 0.05))     # kept, two cells on
+    for i in range(5, 30):                        # a trail of low points leading away
+        occ = g.update(NONE, None, i * NS,
+                       sustain_xy=_pts(*[(5.05 + 0.1 * k, 0.05) for k in range(12)]))
+        assert all(abs(x - 5.05) <= 0.21 for x, _ in occ), (i, occ)
+    assert len(occ) == 0                          # and it ends with the memory
 
 
-def test_a_cell_seen_once_is_not_confirmed_by_sustaining_points_with_the_default():
-    g = _grid()                                  # 0.7: occupied the cycle before
-    g.update(_pts((5.05, 0.05)), None, 0)         # one hit: evidence 1 < occupied_at 1.4
+def test_a_cell_the_band_hit_once_is_not_confirmed_by_sustaining_points():
+    g = _grid()
+    g.update(_pts((5.05, 0.05)), None, 0, sustain_xy=NONE)   # one hit: never occupied
     for i in range(1, 10):
         assert len(g.update(NONE, None, i * NS, sustain_xy=_pts((5.05, 0.05)))) == 0
-    loose = _grid(sustain_min_evidence=0.5)       # a single hit the cycle before is enough
-    loose.update(_pts((5.05, 0.05)), None, 0)
-    assert len(loose.update(NONE, None, NS, sustain_xy=_pts((5.05, 0.05)))) == 1
 
 
-def test_zero_turns_the_grid_deaf_to_sustaining_points():
-    g = _grid(sustain_min_evidence=0.0)
+def test_zero_turns_the_grid_deaf_to_sustaining_points_and_a_box_without_them_pays_nothing():
+    g = _grid(sustain_cycles=0)
     for i in range(3):
-        g.update(_pts((5.05, 0.05)), None, i * NS)
+        g.update(_pts((5.05, 0.05)), None, i * NS, sustain_xy=NONE)
     g.update(NONE, None, 3 * NS, sustain_xy=_pts((5.05, 0.05)))
     assert len(g.update(NONE, None, 4 * NS, sustain_xy=_pts((5.05, 0.05)))) == 0
+    plain = _grid()
+    for i in range(5):
+        plain.update(_pts((5.05, 0.05)), None, i * NS)
+    assert plain.band_ev is None and plain.seen is None
 
 
 def test_the_box_stops_for_what_it_keeps_as_the_vehicle_closes_in():
-    """The decision end to end: band points on a thing 9 m ahead, then only sustaining points
-    on it while the vehicle drives at it at 2 m/s: STOP when it reaches the stop zone; without
-    them the box says CLEAR all the way in."""
+    """The decision end to end, the dog of training stubble-thin 130 as the stereo saw it: a
+    thing driven at at 2 m/s whose points reach the band in two cycles running out of every
+    six and lie between the floors in the others. Kept, it is a STOP when it reaches the stop
+    zone; without the sustaining points the box never stops for it."""
     def drive(sustain: bool):
         core = DecisionCore(parse_config({}, "<t>"))
         states = []
         x = 9.0
         for i in range(40):
-            band = _pts((x, 0.0)) if i < 4 else NONE
-            sus = _pts((x, 0.0)) if sustain and i >= 4 else None
+            in_band = i % 6 in (0, 1)
+            band = _pts((x, 0.0)) if in_band else NONE
+            sus = (NONE if in_band else _pts((x, 0.0))) if sustain else None
             d = {"stereo-novelty": Detections(points_xy=band, sustain_xy=sus)}
             pic = core.perceive(d, VehicleState(i * NS, i * NS, 2.0, 0.0), i * NS)
             states.append("STOP" if pic.verdict.in_stop else "SLOW" if pic.verdict.in_slow
@@ -110,7 +123,7 @@ def test_the_box_stops_for_what_it_keeps_as_the_vehicle_closes_in():
         return states
     with_it, without = drive(True), drive(False)
     assert "STOP" in with_it
-    assert "STOP" not in without and without[-1] == "CLEAR"
+    assert "STOP" not in without
 
 
 def test_a_lower_floor_at_or_above_the_band_is_refused_naming_the_key():
