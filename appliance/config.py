@@ -124,18 +124,6 @@ class GridConfig:
                                    "recurrence (the laser too: a tuft top it grazes comes and "
                                    "goes; docs/proving-ground.md 'Tuft tops'); [\"laser\"] was "
                                    "the default before")
-    sustain_cycles: int = _f(5, lo=0, hi=100,
-                             doc="height hysteresis (a pipeline's sustaining points, e.g. "
-                                 "stereo-novelty's sustain_band_min_m): a sustaining point "
-                                 "counts as a hit only within sustain_radius_m of a cell that "
-                                 "the band's own points (not sustaining ones) made occupied in "
-                                 "the last this many cycles, so it can keep an obstacle but "
-                                 "neither start one nor carry one across the field; 0 = "
-                                 "sustaining points are ignored")
-    sustain_radius_m: float = _f(0.2, lo=0.0, hi=2.0,
-                                 doc="height hysteresis: how far from such a cell (an "
-                                     "obstacle's points jitter by a cell or two from frame to "
-                                     "frame)")
     confirm_points: int = _f(300, lo=0, hi=1_000_000,
                              doc="fewer frames when near and large (issue #14): the cells hit "
                                  "by the points of a candidate with at least this many points "
@@ -628,11 +616,6 @@ def _cross_check(cfg: Config, file: str) -> None:
     if t.movers_max_mps <= t.movers_min_mps:
         raise ConfigError("movers_max_mps must exceed movers_min_mps (nothing would be a "
                           "mover)", file=file, key="tracking")
-    sn = cfg.perception.extra.get("stereo-novelty")
-    if sn is not None and 0 < sn.sustain_band_min_m and not sn.sustain_band_min_m < sn.band_min_m:
-        raise ConfigError(f"sustain_band_min_m ({sn.sustain_band_min_m}) must be below band_min_m "
-                          f"({sn.band_min_m}): it is the lower floor of the height hysteresis "
-                          f"(0 = off)", file=file, key="perception.stereo-novelty")
     if cfg.perception.laser.max_range_m <= cfg.perception.laser.min_range_m:
         raise ConfigError("max_range_m must exceed min_range_m", file=file,
                           key="perception.laser")

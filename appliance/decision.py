@@ -174,14 +174,6 @@ def camera_points(detections: dict) -> list[np.ndarray]:
             if n != "laser" and o is not None and len(o.points_xy)]
 
 
-def sustain_points(detections: dict) -> np.ndarray | None:
-    """This cycle's sustaining points of every pipeline that gives them (height hysteresis,
-    ``Detections.sustain_xy``), (N, 2) vehicle frame; None when none gives any."""
-    sus = [np.asarray(o.sustain_xy, np.float64).reshape(-1, 2) for o in detections.values()
-           if o is not None and getattr(o, "sustain_xy", None) is not None]
-    return np.concatenate(sus) if sus else None
-
-
 def camera_views(detections: dict) -> list:
     """This cycle's camera detections that carry a view (``Detections.view``): what a laser
     return can be confirmed by."""
@@ -363,8 +355,7 @@ class DecisionCore:
         pts_xy = np.concatenate(pts) if pts else np.zeros((0, 2), np.float32)
         g = self.cfg.grid
         grid_cells = self.grid.update(pts_xy, vehicle, now_ns,
-                                      confirmed_points(detections, g, self.cfg.zones.front_x_m),
-                                      sustain_points(detections))
+                                      confirmed_points(detections, g, self.cfg.zones.front_x_m))
         speed = vehicle.speed_mps if vehicle is not None else 0.0
         kappa = self._bend(vehicle)
         if self.tracker is None:
@@ -479,11 +470,7 @@ class DecisionCore:
         if not g.hold_blind_laser and len(c):
             # only what a camera saw: a camera pipeline's points hit the cell this cycle, or
             # it is a candidate already (hit by one in an earlier cycle while confirmed)
-            # (a camera's sustaining points are what it saw there too)
             cam = camera_points(detections)
-            sus = sustain_points(detections)
-            if sus is not None and len(sus):
-                cam.append(sus)
             ok = (self.grid.hit_by(c, np.concatenate(cam)) if cam
                   else np.zeros(len(c), bool))
             if len(seeds) and not ok.all():

@@ -42,23 +42,13 @@ class GridFusion:
         # spreading memory does not fill the grid with tiny values that every cycle's
         # ego-motion would move (3.3 ms a cycle of the loop's fusion stage, bench_loop)
         self._recur_floor = max(0.0, 0.5 * (c.stop_recur - 1.0))
-        # height hysteresis (``sustain_cycles``): the evidence of the band's own points alone
-        # (never raised by sustaining points) and a memory of where it made cells occupied
-        # (1 now, halved each cycle): sustaining points count only near that memory. Kept
-        # from the first cycle a pipeline hands on sustaining points (an empty array counts):
-        # a box without them pays nothing
-        self.band_ev: np.ndarray | None = None
-        self.seen: np.ndarray | None = None
-        rs = int(round(c.sustain_radius_m / c.cell_m))
-        self._sustain_kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE,
-                                                         (2 * rs + 1, 2 * rs + 1))
         r = int(round(c.stop_chain_radius_m / c.cell_m))
         self._chain_kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
         self._last_ns: int | None = None
 
     def reset(self) -> None:
         self.evidence[:] = 0
-        for g in (self.chain, self.recur, self.band_ev, self.seen):
+        for g in (self.chain, self.recur):
             if g is not None:
                 g[:] = 0
         self._last_ns = None
@@ -110,9 +100,6 @@ class GridFusion:
             self.chain = self._move(self.chain, a, b)
         if self.recur is not None:
             self.recur = self._move(self.recur, a, b)
-        if self.band_ev is not None:
-            self.band_ev = self._move(self.band_ev, a, b)
-            self.seen = self._move(self.seen, a, b)
 
     def _move(self, grid: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         # np.nonzero of the float grid is ~10x slower than flatnonzero of its != 0 (a
@@ -138,22 +125,17 @@ class GridFusion:
 
     # -- update -----------------------------------------------------------------------------
     def update(self, points_xy: np.ndarray, vehicle: VehicleState | None,
-               stamp_ns: int, confirmed_xy: np.ndarray | None = None,
-               sustain_xy: np.ndarray | None = None) -> np.ndarray:
+               stamp_ns: int, confirmed_xy: np.ndarray | None = None) -> np.ndarray:
         """Integrate this cycle's points; return the occupied cell centres (M, 2).
         ``confirmed_xy``: points (among ``points_xy`` or not) whose cells are occupied at once
-        (evidence raised to ``occupied_at``: :func:`confirmed_points`). ``sustain_xy``: points
-        that count as hits only within ``sustain_radius_m`` of a cell the band's own points made
-        occupied in the last ``sustain_cycles`` cycles (height hysteresis: they keep an
-        obstacle, never start one, and cannot carry one across the field, since what they make
-        occupied is never that memory)."""
+        (evidence raised to ``occupied_at``: :func:`confirmed_points`)."""
         dt = 0.0 if self._last_ns is None else (stamp_ns - self._last_ns) / 1e9
         self._last_ns = stamp_ns
         if dt > 2.0 or dt < 0:   # a gap (restart, stale sensors) or a clock step back: old
             # evidence means nothing (a step back kept evidence "from the future": found by
             # tests/test_properties.py; the tracker drops its tracks then too)
             self.evidence[:] = 0
-            for g in (self.chain, self.recur, self.band_ev, self.seen):
+            for g in (self.chain, self.recur):
                 if g is not None:
                     g[:] = 0
         else:
@@ -171,28 +153,6 @@ class GridFusion:
             self.evidence[ix, iy] = np.maximum(self.evidence[ix, iy],
                                                np.float32(self.cfg.occupied_at))
             hit[ix, iy] = True
-        if self.band_ev is None and sustain_xy is not None and self.cfg.sustain_cycles > 0:
-            self.band_ev = np.zeros_like(self.evidence)
-            self.seen = np.zeros_like(self.evidence)
-        if self.band_ev is not None:
-            # the band's own: its points and its confirmed cells, never a sustaining point
-            self.band_ev *= self.cfg.decay
-            self.band_ev += hit
-            if confirmed_xy is not None and len(confirmed_xy):
-                self.band_ev[ix, iy] = np.maximum(self.band_ev[ix, iy],
-                                                  np.float32(self.cfg.occupied_at))
-            self.seen *= np.float32(0.5)
-            self.seen += self.band_ev >= self.cfg.occupied_at - 1e-6
-            if sustain_xy is not None and len(sustain_xy):
-                sx, sy, sok = self.cell_index(np.asarray(sustain_xy, np.float64).reshape(-1, 2))
-                near = cv2.dilate(
-                    (self.seen >= 0.5 ** (self.cfg.sustain_cycles - 1) - 1e-6).astype(np.uint8),
-                    self._sustain_kernel)
-                sx, sy = sx[sok], sy[sok]
-                keep = near[sx, sy] > 0
-                add = np.zeros_like(hit)
-                add[sx[keep], sy[keep]] = True
-                self.evidence += add & ~hit
         if self.chain is not None:
             # a hit cell continues the longest chain that ended within the radius last cycle
             near = cv2.dilate(self.chain, self._chain_kernel)

@@ -65,10 +65,6 @@ class Detections:
     # with ``look(xyz, names)``: appliance/perception/view.py; the laser's confirmation by a
     # camera, ``[grid] laser_confirm_by`` in appliance/decision.py)
     view: object = None
-    # ... and points that may keep an obstacle the grid already holds but never start one
-    # (height hysteresis: stereo-novelty's ``sustain_band_min_m``; (N, 2) vehicle frame; None
-    # = this pipeline gives none; the cell decision's grid, [grid] sustain_min_evidence)
-    sustain_xy: np.ndarray | None = None
 
     @staticmethod
     def empty() -> "Detections":

@@ -283,18 +283,6 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
                                 "the next frames, whatever raised it then. 0 = off")
     recall_dilate_cells: int = _f(1, lo=0, hi=10,
                                   doc="recall_frames: dilation of the recalled cells")
-    # thirty-eighth session (measured in docs/front-end.md "Height hysteresis"): a head-on
-    # dog 0.55 m high is seen in the band from 12 m (its back 0.52-0.74 m), then its points
-    # fall under 0.5 m as it comes near (heights read lower near the bottom of the view) and
-    # its cells fade before the stop zone: training stubble-thin 130
-    sustain_band_min_m: float = _f(0.0, lo=0.0, hi=10.0,
-                                   doc="height hysteresis: points from this height up to "
-                                       "band_min_m are handed on as sustaining points "
-                                       "(Detections.sustain_xy): the grid counts them only in "
-                                       "cells it already holds as obstacles ([grid] "
-                                       "sustain_min_evidence), so they keep an obstacle seen "
-                                       "in the band but never start one (low stubble makes "
-                                       "no cell). Must be below band_min_m; 0 = off")
     low_band_feedback: bool = _f(True, doc="low_band_min_m: its points keep their cells out of "
                                             "the novelty model's update like any obstacle point "
                                             "(false: they are learnt, so low stubble in a novel "
@@ -771,18 +759,6 @@ class StereoNoveltyPipeline(Pipeline):
                                    known_min=o.support_known_min)
             keep[idx[sup < o.support_min]] = False
         self._drop_stalks(pts, px, h, keep, k / float(kd))
-        sustain_xy = None
-        if 0 < o.sustain_band_min_m < o.band_min_m and len(pts):
-            # height hysteresis: what stands between the two floors may keep an obstacle the
-            # grid holds, never make one; the same vertical support as the band's points
-            sus = band_mask(pts, h, o.sustain_band_min_m, o.band_min_m, o.max_range_m) & ~keep
-            if o.support_min > 0 and sus.any():
-                idx = np.flatnonzero(sus)
-                sup = vertical_support(disp, px[idx], pts[idx], calib, ground,
-                                       vehicle=inputs.vehicle, use_attitude=o.use_attitude,
-                                       known_min=o.support_known_min)
-                sus[idx[sup < o.support_min]] = False
-            sustain_xy = dedupe_cells(pts[sus, :2])
         self._remember(pts[keep])
         xy = dedupe_cells(pts[keep, :2])
         cands = self._candidates(disp, pts[keep], px[keep], h[keep], k / float(kd))
@@ -822,8 +798,7 @@ class StereoNoveltyPipeline(Pipeline):
         # masks at the descriptor resolution, half a novelty cell of slack up and down
         view = CameraView(self._source_masks, Kd if kd > 1 else K, M, fr.calib.mount.position,
                           o.max_range_m, slack_px=res.cell_px // 2, min_depth_m=o.min_depth_m)
-        return Detections(points_xy=xy, candidates=cands, ground=for_laser, view=view,
-                          sustain_xy=sustain_xy, debug={
+        return Detections(points_xy=xy, candidates=cands, ground=for_laser, view=view, debug={
             "ground": ground.to_dict(), "candidates": len(cands),
             "boot": None if boot is None else {"candidates": len(boot["candidates"]),
                                                "excluded_cells": int(boot["exclude"].sum())},
@@ -832,7 +807,6 @@ class StereoNoveltyPipeline(Pipeline):
                 "height_m": canopy,
                 "dropped_points": 0 if under_canopy is None else int(under_canopy.sum())},
             "novel_cells_raw": int(res.raw.sum()),
-            "sustain_points": None if sustain_xy is None else len(sustain_xy),
             # cells of the novelty grid each cue raised (a pixel mask counts in cell areas)
             "cue_cells": {n: int(np.count_nonzero(c)) if c.shape == res.mask.shape else
                           int(round(np.count_nonzero(c) / float(res.cell_px ** 2)))
