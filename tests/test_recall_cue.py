@@ -133,3 +133,26 @@ def test_a_clock_step_back_or_a_gap_forgets_what_was_recalled(course):
             assert not len(p._recall)
     finally:
         p.close()
+
+
+def test_only_wide_candidates_and_nothing_before_the_model_warms_up(course):
+    """``recall_min_width_m``: only points on candidates at least that wide are recalled (none
+    here at 20 m); ``recall_min_updates``: nothing before the model holds that many updates."""
+    for opts in ({"recall_min_width_m": 20.0}, {"recall_min_updates": 1000}):
+        p = _pipe(recall_frames=3, **opts)
+        try:
+            for fr in course:
+                d = p.process(fr)
+                assert d.debug["cue_cells"].get("recent", 0) == 0
+            assert not any(len(x) for x in p._recall)
+        finally:
+            p.close()
+    p = _pipe(recall_frames=3, recall_min_width_m=0.2)    # the course's wide things are kept
+    try:
+        for fr in course:
+            p.process(fr)
+        kept = sum(len(x) for x in p._recall)
+        pts, px, h, keep, k = p.last_points
+        assert 0 < kept
+    finally:
+        p.close()

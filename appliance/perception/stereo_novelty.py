@@ -283,6 +283,15 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
                                 "the next frames, whatever raised it then. 0 = off")
     recall_dilate_cells: int = _f(1, lo=0, hi=10,
                                   doc="recall_frames: dilation of the recalled cells")
+    recall_min_width_m: float = _f(0.0, lo=0.0, hi=10.0,
+                                   doc="recall_frames: only the points of the frame's "
+                                       "candidates at least this wide across (y) are "
+                                       "recalled (a stubble tuft is 9-17 cm across, a dog "
+                                       "head-on 26-35 cm); 0 = every obstacle point")
+    recall_min_updates: int = _f(0, lo=0, hi=1000,
+                                 doc="recall_frames: nothing is recalled before the novelty "
+                                     "model holds this many updates (the boot's first frames "
+                                     "call much of the field novel)")
     low_band_feedback: bool = _f(True, doc="low_band_min_m: its points keep their cells out of "
                                             "the novelty model's update like any obstacle point "
                                             "(false: they are learnt, so low stubble in a novel "
@@ -516,11 +525,23 @@ class StereoNoveltyPipeline(Pipeline):
         out[ci[ok].astype(np.int64), cj[ok].astype(np.int64)] = True
         return dilate_cells(out, o.recall_dilate_cells) if out.any() else None
 
-    def _remember(self, pts: np.ndarray) -> None:
+    def _remember(self, pts: np.ndarray, cands=()) -> None:
         """``recall_frames``: keep this frame's obstacle points (one per 0.1 m cube: a tall
-        thing keeps its height, whose cells are one above the other)."""
-        if self.options.recall_frames <= 0:
+        thing keeps its height, whose cells are one above the other); with
+        ``recall_min_width_m`` only those on a candidate that wide, and nothing before the
+        novelty model holds ``recall_min_updates`` updates."""
+        o: StereoNoveltyConfig = self.options
+        if o.recall_frames <= 0:
             return
+        if self.novelty.model.updates < o.recall_min_updates:
+            pts = pts[:0]
+        elif o.recall_min_width_m > 0 and len(pts):
+            on = np.zeros(len(pts), bool)
+            for c in cands:
+                if c.width_m >= o.recall_min_width_m:
+                    on |= ((np.abs(pts[:, 0] - c.x_m) <= c.length_m / 2 + 0.05) &
+                           (np.abs(pts[:, 1] - c.y_m) <= c.width_m / 2 + 0.05))
+            pts = pts[on]
         if not len(pts):
             self._recall.append(np.zeros((0, 3)))
             return
@@ -759,9 +780,9 @@ class StereoNoveltyPipeline(Pipeline):
                                    known_min=o.support_known_min)
             keep[idx[sup < o.support_min]] = False
         self._drop_stalks(pts, px, h, keep, k / float(kd))
-        self._remember(pts[keep])
         xy = dedupe_cells(pts[keep, :2])
         cands = self._candidates(disp, pts[keep], px[keep], h[keep], k / float(kd))
+        self._remember(pts[keep], cands)
         t3, c3 = time.perf_counter(), time.thread_time()
         # obstacle-mask feedback: cells near what was just detected are never learnt
         fb = keep if low_added is None or o.low_band_feedback else keep & ~low_added
