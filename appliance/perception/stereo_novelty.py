@@ -28,7 +28,7 @@ from .cue import CueOptions, LearnedCue
 from .candidates import cluster_candidates, stalk_points
 from .ground import GroundModel
 from .novelty import NoveltyDetector, dilate_cells, mask_to_camera, obstacle_cells
-from .view import CameraView
+from .view import CameraView, pixels_of
 from .stereo import (StereoConfig, StereoPipeline, band_mask, check_matcher, dedupe_cells, drop_dark,
                      disparity_regions, downscale, local_heights, make_matcher, mask_boxes,
                      match_factor, merge_strips, point_confidence, points_from_disparity,
@@ -511,13 +511,11 @@ class StereoNoveltyPipeline(Pipeline):
         p = np.concatenate(pts)
         cal = scaled_calibration(fr.calib, kd)
         cam = cal.camera
-        q = (p - np.asarray(cal.mount.position)) @ cal.mount.camera_to_vehicle()
-        ahead = q[:, 2] > 0.1
+        u, v, ahead = pixels_of(p, cam.fx, cam.fy, cam.cx, cam.cy,
+                                cal.mount.camera_to_vehicle(), cal.mount.position)
         if not ahead.any():
             return None
-        q = q[ahead]
-        u = cam.fx * q[:, 0] / q[:, 2] + cam.cx
-        v = cam.fy * q[:, 1] / q[:, 2] + cam.cy
+        u, v = u[ahead], v[ahead]
         rows, cols = res.mask.shape
         ci, cj = np.floor(v / res.cell_px), np.floor(u / res.cell_px)
         ok = (ci >= 0) & (ci < rows) & (cj >= 0) & (cj < cols)
