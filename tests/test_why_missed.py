@@ -23,6 +23,7 @@ def test_a_window_of_a_training_drive_prints_a_line_per_cycle():
     for r in rows:
         assert any(f" {v} " in r for v in ("pair", "left", "right", "none"))
         assert "ahead" in r and "novel" in r
+        assert "all h " in r and "(evidence " in r       # every near point's heights, the grid
 
 
 def test_bad_requests_are_one_clear_line():
