@@ -40,8 +40,9 @@ class Mount:
 
 def move_with_vehicle(xy: np.ndarray, dt_s: float, vehicle: "VehicleState | None") -> np.ndarray:
     """Vehicle-frame points fixed in the world, ``dt_s`` later: the grid's own ego-motion
-    (``appliance.fusion.GridFusion._ego_motion``) for points (speed and yaw rate over the interval; a point
-    at p is at R(-dth) (p - t) in the new frame, t the chord of the arc driven)."""
+    (``appliance.fusion.GridFusion._ego_motion``) for points (speed and yaw rate over the
+    interval; a point at p is at R(-dth) (p - t) in the new frame, t the chord of the arc
+    driven). Shared by the grid's hold and stereo-novelty's recall."""
     p = np.asarray(xy, np.float64).reshape(-1, 2)
     if vehicle is None or dt_s <= 0 or not len(p):
         return p

@@ -272,9 +272,11 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
                                        "frame calls much of the field novel: at start-up the "
                                        "low band stopped a training drive for its stubble at "
                                        "2.7 s); 0 = from the first frame")
-    # thirty-eighth session (docs/front-end.md "Looking again where something was"): the
-    # same dog is matched only in the frames the depth cue happens to raise its cells (5 of
-    # 50 on its way in); its band hits never come two cycles running
+    # Off (thirty-eighth session, docs/front-end.md "Looking again where something was"): a
+    # head-on dog, never novel, was matched in 19 of the 92 cycles of its approach (when the
+    # depth cue raised it); recalled, in 72, but the recall holds stubble as firmly: training
+    # 4 -> 13 false stops (4 with the width filter, more false-stop seconds), acceptance
+    # 19 -> 40 with the filter
     recall_frames: int = _f(0, lo=0, hi=100,
                             doc="the obstacle points of the last this many frames, carried "
                                 "with the vehicle's motion (speed, yaw rate) and projected "
@@ -412,7 +414,7 @@ class StereoNoveltyPipeline(Pipeline):
         self._canopy_src = None                # (points, pixels, factor) of the coarse pass
         self._canopies: deque = deque(maxlen=self.options.canopy_frames)   # canopy_floor
         # recall_frames: per recent frame its obstacle points (vehicle frame, x y z), moved
-        # with the vehicle each frame; the stamp and vehicle of the last move
+        # with the vehicle each frame; the stamp of the last move
         self._recall: deque = deque(maxlen=max(1, self.options.recall_frames))
         self._recall_ns: int | None = None
 
