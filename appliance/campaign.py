@@ -35,7 +35,7 @@ COMPARE_EXCLUDE = ("engine", "workers", "timing", "provenance")   # differ by co
 SUMMARY_KEYS = ("drives", "simulated_hours", "distance_km", "collisions", "false_stops",
                 "false_stops_per_hour", "false_stops_per_hour_ci95", "true_stops",
                 "missed_stops", "fault_stops", "detours", "overrides", "false_stop_s",
-                "detection_distance_m", "false_stops_by_place", "false_stops_by_cause",
+                "slow_for_nothing_s", "detection_distance_m", "false_stops_by_place", "false_stops_by_cause",
                 "model")
 
 
@@ -359,6 +359,8 @@ def aggregate(results: list[dict]) -> dict:
         "detours": tot("detours"),
         "overrides": tot("overrides"),
         "false_stop_s": round(sum(r["false_stop_s"] for r in results), 1),
+        # (a result.json written before the thirty-eighth session has none: 0)
+        "slow_for_nothing_s": round(sum(r.get("slow_for_nothing_s", 0.0) for r in results), 1),
         "detection_distance_m": detection,
         "false_stops_by_place": dict(sorted(by_place.items())),
         "false_stops_by_cause": dict(sorted(by_cause.items(), key=lambda kv: -kv[1])),
@@ -881,6 +883,12 @@ def format_summary(s: dict) -> str:
                      f"once, a drive each time): {ab['false_stops']} false stops, "
                      f"{ab['false_stops_per_hour']}/h (95 % CI {ab['false_stops_per_hour_ci95']}"
                      f"); {s['false_stops_boot']} in the first {ab['boot_s']:.0f} s")
+    if s.get("simulated_hours"):
+        slow = s.get("slow_for_nothing_s", 0.0)
+        share = 100.0 * slow / (3600.0 * s["simulated_hours"])
+        lines.append(f"stood or crawled for nothing: {s['false_stop_s']:.1f} s in false stops, "
+                     f"{slow:.1f} s SLOW with nothing real in the zones ({share:.1f} % of the "
+                     f"simulated time)")
     t = s["timing"]
     lines.append(f"false stops per hour {s['false_stops_per_hour']} (95 % CI {ci}); wall "
                  f"{t['wall_s'] / 60:.1f} min, {t['simulated_hours_per_cpu_hour']} simulated h "

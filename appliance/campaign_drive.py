@@ -303,6 +303,10 @@ class Drive:
         self._detected: set[int] = set()      # obstacles with a detection distance already
         self.detections: list[dict] = []
         self.false_stop_s = 0.0
+        # seconds the box said SLOW with nothing real in its stop or slow zone and no walker
+        # about to meet the vehicle (within the slow horizon): time a user loses that no false
+        # stop counts
+        self.slow_for_nothing_s = 0.0
         self._prev_collisions = 0
         self._ahead_t: dict[int, float] = {}  # obstacle index -> last time in the path ahead
         self._history = deque(maxlen=int(10 * self.rate))
@@ -592,6 +596,10 @@ class Drive:
             self._episode = None
         if obstacle_stop and not in_stop:
             self.false_stop_s += 1.0 / self.rate
+        if state is GateState.SLOW and not any(
+                o["in_stop"] or o["in_slow"] or o["meets"] or o.get("meets_slow")
+                for o in truth):
+            self.slow_for_nothing_s += 1.0 / self.rate
         # missed stops: a real obstacle deep in the stop zone and no STOP
         for o in truth:
             k = o["k"]
@@ -737,6 +745,7 @@ class Drive:
             "fault_stops": self.counts["fault"], "missed_stops": self.missed,
             "false_stops_boot": boot,
             "false_stop_s": round(self.false_stop_s, 1),
+            "slow_for_nothing_s": round(self.slow_for_nothing_s, 1),
             "false_stops_by_place": by_place, "false_stops_by_cause": by_cause,
             "detours": int(v.detours), "overrides": int(v.overrides),
             "detections": self.detections,

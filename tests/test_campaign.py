@@ -310,6 +310,47 @@ def test_a_boot_stop_that_goes_on_for_a_phantom_is_a_false_stop():
         drv.daemon.shutdown()
 
 
+def test_slow_for_nothing_counts_the_slow_seconds_with_nothing_real_in_the_zones():
+    """A SLOW costs the user time as a false stop does, in smaller coin: the seconds the box
+    said SLOW with nothing real in its stop or slow zone (and no walker about to meet the
+    vehicle) are counted apart; a SLOW for something real is not, nor a STOP or a CLEAR."""
+    from types import SimpleNamespace as NS
+    import numpy as np
+    from appliance.campaign import aggregate
+    from appliance.campaign_drive import Drive, deep_merge, drive_config_data
+    from hal.types import GateState
+    data = deep_merge(drive_config_data("stubble-coverage", 1, stereo_scale=0.25),
+                      {"perception": {"pipelines": ["laser"]}})
+    drv = Drive("stubble-coverage", 1, 0.01, config_data=data).build()
+    real = {"k": 0, "id": "c1", "cls": "crate", "ahead": 5.0, "ahead_straight": 5.0,
+            "pts": np.zeros((0, 2)), "pts_vehicle": np.zeros((0, 2)), "d_zone": 1.2,
+            "meets": False, "meets_slow": False, "in_stop": False, "in_slow": True,
+            "deep": False}
+    try:
+        world = []
+        drv.truth = lambda stop_len_m, curvature_1pm=0.0: world
+
+        def cycle(i, state, reason):
+            drv.on_cycle(NS(index=i, output=NS(state=state, reason=reason),
+                            verdict=NS(stop_len_m=3.8, nearest_m=4.0),
+                            cells_xy=np.zeros((0, 2)), detections={}, faults=[], wall_ms={}))
+        for i in range(0, 12):                        # 1.2 s SLOW for nothing
+            cycle(i, GateState.SLOW, "obstacle 4.0 m ahead in the slow zone")
+        world.append(real)
+        for i in range(12, 20):                       # 0.8 s SLOW for the crate: not counted
+            cycle(i, GateState.SLOW, "obstacle 4.0 m ahead in the slow zone")
+        world.clear()
+        for i in range(20, 25):                       # CLEAR and STOP: not SLOW
+            cycle(i, GateState.CLEAR if i < 22 else GateState.STOP, "zone clear")
+        r = drv.result(2.5, 1.0)
+        assert r["slow_for_nothing_s"] == 1.2
+        assert aggregate([r, r])["slow_for_nothing_s"] == 2.4
+        del r["slow_for_nothing_s"]                    # a result.json from before: none
+        assert aggregate([r])["slow_for_nothing_s"] == 0.0
+    finally:
+        drv.daemon.shutdown()
+
+
 def test_a_greenhouse_drive_runs_the_zones_run_sim_greenhouse_runs():
     """The campaign's greenhouse drives judged with the default 1.25 m half width put the bush
     rows beside the 0.8 m sprayer in the stop zone (every training phantom was at a bush edge);
