@@ -118,6 +118,12 @@ class GridConfig:
                                "the papers' rule; docs/tracking.md 'stop_recur on the "
                                "acceptance seeds')")
     stop_recur_decay: float = _f(0.7, lo=0.0, hi=0.99)
+    slow_recur: float = _f(0.0, lo=0.0, hi=20.0,
+                           doc="cell decision: an occupied cell in the slow zone (beyond the "
+                               "stop zone) makes a SLOW only when its recurrence (as "
+                               "stop_recur's) reaches this; 0 = at once (as before). A stop-zone "
+                               "cell not yet confirmed for a STOP is a SLOW either way "
+                               "(docs/proving-ground.md 'SLOW for nothing')")
     stop_recur_now: tuple = _f((),
                                doc="pipelines whose hits in a stop-zone cell make it a STOP at "
                                    "once, recurrent or not; [] = every pipeline waits for the "
@@ -596,6 +602,9 @@ def _cross_check(cfg: Config, file: str) -> None:
         if bad:
             raise ConfigError(f"unknown pipeline {bad[0]!r}; known: "
                               f"{', '.join(known_pipelines())}", file=file, key=f"grid.{key}")
+    if g.slow_recur > 0 and g.stop_recur <= 0:
+        raise ConfigError("slow_recur needs the recurrence memory of stop_recur (> 0)",
+                          file=file, key="grid.slow_recur")
     from appliance.perception.view import CONFIRM_NAMES
     bad = [n for n in g.laser_confirm_by if n not in CONFIRM_NAMES]
     if bad:

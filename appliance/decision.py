@@ -381,8 +381,13 @@ class DecisionCore:
             cells = grid_cells
             if g.hold_blind:
                 cells, conf = self._hold_blind(grid_cells, conf, detections, vehicle, now_ns)
+            slow_ok = None
+            if g.slow_recur > 0:             # a SLOW for the slow zone wants a recurrent cell
+                slow_ok = self.grid.recur_at(cells) >= g.slow_recur - 1e-6
+                if conf is not None:         # (what may make a STOP may make a SLOW)
+                    slow_ok |= np.asarray(conf, bool)
             verdict = assess(cells, speed, self.cfg.zones, conf, cell_m=g.cell_m,
-                             curvature_1pm=kappa)
+                             curvature_1pm=kappa, slow_ok=slow_ok)
             if len(self._held_cells) and verdict.in_stop:
                 # say so when what is stopped for includes a held cell: the vehicle stands
                 # before a thing no camera sees now (the technician's first question)

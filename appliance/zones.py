@@ -374,7 +374,8 @@ def sectors(cells_xy: np.ndarray, n: int = 72, fov_deg: float = 180.0,
 
 def assess(cells_xy: np.ndarray, speed_mps: float, z: ZonesConfig,
            confirmed: np.ndarray | None = None, cell_m: float = 0.0,
-           curvature_1pm: "float | PathBend" = 0.0) -> ZoneVerdict:
+           curvature_1pm: "float | PathBend" = 0.0,
+           slow_ok: np.ndarray | None = None) -> ZoneVerdict:
     """The zone verdict on occupied cells. ``confirmed`` (one flag per cell, or None: all):
     only a confirmed cell in the stop zone makes a STOP; an unconfirmed one there is a SLOW
     (``[grid] stop_at``: a cell seen in too few cycles running to stop for). ``cell_m``: the
@@ -384,14 +385,21 @@ def assess(cells_xy: np.ndarray, speed_mps: float, z: ZonesConfig,
     SLOW one cycle too long. ``nearest_m``: the nearest such cell's centre from the front (0
     when its centre is behind the front). ``curvature_1pm``: the zones bend along that arc
     (:func:`to_path_frame`; distances are then along the arc), or a :class:`PathBend`: along
-    the planned path."""
+    the planned path. ``slow_ok`` (one flag per cell, or None: all): only a flagged cell in
+    the slow zone beyond the stop zone makes a SLOW (``[grid] slow_recur``)."""
     cells = np.asarray(cells_xy, dtype=np.float64).reshape(-1, 2)
-    if confirmed is not None:
+    if confirmed is not None or slow_ok is not None:
         keep = kept_mask(cells, z)
-        cells, conf = cells[keep], np.asarray(confirmed, bool).reshape(-1)[keep]
+        n = len(cells)
+        conf = (np.ones(n, bool) if confirmed is None
+                else np.asarray(confirmed, bool).reshape(-1))[keep]
+        sok = (np.ones(n, bool) if slow_ok is None
+               else np.asarray(slow_ok, bool).reshape(-1))[keep]
+        cells = cells[keep]
     else:
         cells = drop_excluded(cells, z)
         conf = np.ones(len(cells), bool)
+        sok = None
     stop_len = stop_length(speed_mps, z)
     slow_len = stop_len + z.slow_extra_m
     stop_rect, slow_rect = zone_rects(speed_mps, z)
@@ -401,8 +409,10 @@ def assess(cells_xy: np.ndarray, speed_mps: float, z: ZonesConfig,
     stop_cells = fwd & footprints_meet(pc, cell_m, cell_m, stop_rect)
     in_stop = int(np.count_nonzero(stop_cells & conf))
     waiting = int(np.count_nonzero(stop_cells & ~conf))
-    in_slow = int(np.count_nonzero(
-        fwd & ~stop_cells & footprints_meet(pc, cell_m, cell_m, slow_rect))) + waiting
+    beyond = fwd & ~stop_cells & footprints_meet(pc, cell_m, cell_m, slow_rect)
+    if sok is not None:
+        beyond &= sok
+    in_slow = int(np.count_nonzero(beyond)) + waiting
     nearest = float(ahead[fwd].min()) if np.any(fwd) else None
     slow_reason = None
     if waiting and not in_stop:
