@@ -35,8 +35,8 @@ COMPARE_EXCLUDE = ("engine", "workers", "timing", "provenance")   # differ by co
 SUMMARY_KEYS = ("drives", "simulated_hours", "distance_km", "collisions", "false_stops",
                 "false_stops_per_hour", "false_stops_per_hour_ci95", "true_stops",
                 "missed_stops", "fault_stops", "detours", "overrides", "false_stop_s",
-                "slow_for_nothing_s", "detection_distance_m", "false_stops_by_place", "false_stops_by_cause",
-                "model")
+                "slow_for_nothing_s", "detection_distance_m", "false_stops_by_place",
+                "false_stops_by_cause", "model")
 
 
 class CampaignError(FieldguardError):

@@ -118,12 +118,15 @@ class GridConfig:
                                "the papers' rule; docs/tracking.md 'stop_recur on the "
                                "acceptance seeds')")
     stop_recur_decay: float = _f(0.7, lo=0.0, hi=0.99)
+    # Off (thirty-eighth session): 1.3 took a fifth to a quarter of the SLOW-for-nothing
+    # time away but the phantoms a slowed vehicle had kept in its slow zone met a vehicle at
+    # cruise in its stop zone: false stops 4 -> 7 (training), 19 -> 33 (acceptance)
     slow_recur: float = _f(0.0, lo=0.0, hi=20.0,
                            doc="cell decision: an occupied cell in the slow zone (beyond the "
                                "stop zone) makes a SLOW only when its recurrence (as "
                                "stop_recur's) reaches this; 0 = at once (as before). A stop-zone "
                                "cell not yet confirmed for a STOP is a SLOW either way "
-                               "(docs/proving-ground.md 'SLOW for nothing')")
+                               "(docs/tracking.md 'SLOW for nothing, and [grid] slow_recur')")
     stop_recur_now: tuple = _f((),
                                doc="pipelines whose hits in a stop-zone cell make it a STOP at "
                                    "once, recurrent or not; [] = every pipeline waits for the "
