@@ -17,6 +17,37 @@ def missing_tool(reason: str):
     pytest.skip(reason)
 
 
+def wallclock_lock_path() -> Path:
+    """The lock two wall-clock workloads of one checkout take so that they never overlap: the
+    soak (its own fake GigE pair, a daemon and its emulators at nice -10, in a session of its
+    own: tests/test_soak.py) and the fake GigE pair through the daemon (tests/test_hw_aravis.py),
+    whose pair drops frames when the host is busy. Per checkout and user, in the temp dir."""
+    import hashlib
+    import os
+    import tempfile
+    tag = hashlib.sha1(str(ROOT).encode()).hexdigest()[:12]
+    return Path(tempfile.gettempdir()) / f"fieldguard-wallclock-{os.getuid()}-{tag}.lock"
+
+
+def hold_wallclock_lock(max_wait_s: float = 240.0):
+    """Take the lock of :func:`wallclock_lock_path` (exclusive), waiting at most ``max_wait_s``
+    for whoever holds it; the open file that holds it (close it to release), and the seconds
+    waited. After ``max_wait_s`` the caller goes on without it (None), never hangs."""
+    import fcntl
+    import time
+    f = open(wallclock_lock_path(), "a+")
+    t0 = time.monotonic()
+    while True:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return f, time.monotonic() - t0
+        except BlockingIOError:
+            if time.monotonic() - t0 >= max_wait_s:
+                f.close()
+                return None, time.monotonic() - t0
+            time.sleep(0.5)
+
+
 import logging as _logging  # noqa: E402
 
 import pytest as _pytest  # noqa: E402
@@ -59,7 +90,7 @@ SIMULATED = ("test_campaign_shadow.py", "test_laser_false_stops.py", "test_cue.p
              "test_longrun.py", "test_laser_sim_eval.py", "test_rgbd_colour_check.py",
              "test_sim_render.py", "test_sim.py", "test_stereo.py", "test_properties.py",
              "test_boot_safe.py", "test_decision.py", "test_test_parts.py",
-             "test_low_cell_probe.py")
+             "test_low_cell_probe.py", "test_recall_cue.py", "test_slow_recur.py")
 SOAK_MODULE = "test_soak.py"
 SOAK_TEST = (f"tests/{SOAK_MODULE}::"
              "test_short_soak_no_false_clear_stop_within_two_cycles_no_fd_growth")

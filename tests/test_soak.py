@@ -44,10 +44,20 @@ def start_soak(out: Path) -> subprocess.Popen:
     process group: tests/conftest.py ends it (SIGTERM: the soak's cleanup runs) if pytest
     ends first."""
     out.mkdir(parents=True, exist_ok=True)
-    with open(out / "stdout.json", "w") as so, open(out / "stderr.txt", "w") as se:
-        return subprocess.Popen([sys.executable, str(ROOT / "tools/soak.py"), *SOAK_ARGS,
-                                 "--out", str(out), "--json"], stdout=so, stderr=se,
-                                cwd=str(ROOT), start_new_session=True)
+    # the soak holds the checkout's wall-clock lock while it runs (the fake GigE pair through
+    # the daemon waits for it: tests/conftest.py wallclock_lock_path): taken here, handed to
+    # the soak's process, which keeps it to its end
+    from tests.conftest import hold_wallclock_lock
+    lock, _ = hold_wallclock_lock()
+    try:
+        with open(out / "stdout.json", "w") as so, open(out / "stderr.txt", "w") as se:
+            return subprocess.Popen([sys.executable, str(ROOT / "tools/soak.py"), *SOAK_ARGS,
+                                     "--out", str(out), "--json"], stdout=so, stderr=se,
+                                    cwd=str(ROOT), start_new_session=True,
+                                    pass_fds=() if lock is None else (lock.fileno(),))
+    finally:
+        if lock is not None:
+            lock.close()                # the soak's copy of the descriptor keeps the lock
 
 
 def stop_soak(proc: subprocess.Popen) -> None:

@@ -68,3 +68,27 @@ def test_wrong_arguments_say_how_to_call_it():
     r = subprocess.run(["bash", str(SCRIPT), "only-one"], cwd=ROOT, capture_output=True,
                        text=True, timeout=30)
     assert r.returncode == 2 and "usage: test_parts.sh" in r.stderr
+
+
+def test_the_wall_clock_lock_makes_a_second_taker_wait_and_never_hang():
+    """tests/conftest.py hold_wallclock_lock: the soak and the fake GigE pair through the
+    daemon never overlap. Held by one open file (the soak's process holds its copy), a second
+    taker waits; after its bound it goes on without it; once released it is taken at once."""
+    import time
+    from tests.conftest import hold_wallclock_lock
+    first, waited = hold_wallclock_lock(max_wait_s=5.0)
+    assert first is not None and waited < 5.0
+    try:
+        # another process (as the soak is to the wall-clock part): not within 1 s, then on
+        code = (f"import sys; sys.path.insert(0, {str(ROOT)!r}); "
+                "from tests.conftest import hold_wallclock_lock as h; "
+                "f, w = h(max_wait_s=1.0); print(f is None, w >= 1.0)")
+        t = time.monotonic()
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                             timeout=30).stdout.split()
+        assert out == ["True", "True"] and time.monotonic() - t < 20
+    finally:
+        first.close()
+    again, waited = hold_wallclock_lock(max_wait_s=5.0)
+    assert again is not None and waited < 1.0
+    again.close()
