@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 
 from appliance.config import GridConfig
+from appliance.perception.candidates import on_footprints
 from hal.types import VehicleState, move_with_vehicle  # noqa: F401 (re-exported)
 
 
@@ -240,10 +241,7 @@ def confirmed_points(detections: dict, g: GridConfig, front_x_m: float) -> np.nd
         if not big:
             continue
         xy = np.asarray(d.points_xy, np.float64).reshape(-1, 2)
-        on = np.zeros(len(xy), bool)
-        for c in big:
-            on |= (np.abs(xy[:, 0] - c.x_m) <= c.length_m / 2 + 0.05) & \
-                  (np.abs(xy[:, 1] - c.y_m) <= c.width_m / 2 + 0.05)
+        on = on_footprints(xy, big, 0.05)
         if on.any():
             out.append(xy[on])
     return np.concatenate(out) if out else None

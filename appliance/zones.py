@@ -393,8 +393,7 @@ def assess(cells_xy: np.ndarray, speed_mps: float, z: ZonesConfig,
         n = len(cells)
         conf = (np.ones(n, bool) if confirmed is None
                 else np.asarray(confirmed, bool).reshape(-1))[keep]
-        sok = (np.ones(n, bool) if slow_ok is None
-               else np.asarray(slow_ok, bool).reshape(-1))[keep]
+        sok = None if slow_ok is None else np.asarray(slow_ok, bool).reshape(-1)[keep]
         cells = cells[keep]
     else:
         cells = drop_excluded(cells, z)

@@ -25,6 +25,17 @@ import numpy as np
 from .base import Candidate
 
 
+
+def on_footprints(xy: np.ndarray, cands, margin_m: float) -> np.ndarray:
+    """Per point of ``xy`` (N, >= 2; vehicle frame): does it lie on the footprint of one of
+    ``cands`` grown by ``margin_m`` each way (the points that belong to those candidates)?"""
+    p = np.asarray(xy)
+    on = np.zeros(len(p), bool)
+    for c in cands:
+        on |= ((np.abs(p[:, 0] - c.x_m) <= c.length_m / 2 + margin_m)
+               & (np.abs(p[:, 1] - c.y_m) <= c.width_m / 2 + margin_m))
+    return on
+
 def cell_labels(p: np.ndarray, cell_m: float, join_cells: int = 1
                 ) -> tuple[int, np.ndarray] | None:
     """(number of labels, per point its cluster label >= 1) of finite points ``p`` (N >= 1, 2)

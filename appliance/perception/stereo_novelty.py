@@ -25,7 +25,7 @@ from hal.types import move_with_vehicle
 
 from .base import Detections, Pipeline, SensorInputs
 from .cue import CueOptions, LearnedCue
-from .candidates import cluster_candidates, stalk_points
+from .candidates import cluster_candidates, on_footprints, stalk_points
 from .ground import GroundModel
 from .novelty import NoveltyDetector, dilate_cells, mask_to_camera, obstacle_cells
 from .view import CameraView, pixels_of
@@ -536,12 +536,8 @@ class StereoNoveltyPipeline(Pipeline):
         if self.novelty.model.updates < o.recall_min_updates:
             pts = pts[:0]
         elif o.recall_min_width_m > 0 and len(pts):
-            on = np.zeros(len(pts), bool)
-            for c in cands:
-                if c.width_m >= o.recall_min_width_m:
-                    on |= ((np.abs(pts[:, 0] - c.x_m) <= c.length_m / 2 + 0.05) &
-                           (np.abs(pts[:, 1] - c.y_m) <= c.width_m / 2 + 0.05))
-            pts = pts[on]
+            pts = pts[on_footprints(pts, [c for c in cands
+                                          if c.width_m >= o.recall_min_width_m], 0.05)]
         if not len(pts):
             self._recall.append(np.zeros((0, 3)))
             return
@@ -883,10 +879,7 @@ class StereoNoveltyPipeline(Pipeline):
         # matched again, and its noise keeps it out of every later update: a lock-in)
         cands = tuple(c for c in cluster_candidates(P[:, :2], HH, conf, pipeline=self.name)
                       if c.points >= o.boot_min_points and c.ground_contact)
-        inside = np.zeros(len(P), bool)
-        for c in cands:
-            inside |= ((np.abs(P[:, 0] - c.x_m) <= c.length_m / 2 + 0.2)
-                       & (np.abs(P[:, 1] - c.y_m) <= c.width_m / 2 + 0.2))
+        inside = on_footprints(P, cands, 0.2)
         rows, cols = res.mask.shape
         exclude = obstacle_cells(PX[inside] * (k / kd), (rows, cols), res.cell_px,
                                  self._margin_px(W, kd))
