@@ -300,6 +300,9 @@ class Drive:
         self.missed = 0
         self._missed_open: set[int] = set()   # obstacles in the zone whose miss is counted
         self._streak: dict[int, float] = {}   # obstacle index -> ahead_m when the hold began
+        self._streak_t: dict[int, float] = {}  # obstacle index -> t_s when the hold began
+        self._first_held: dict[int, float] = {}  # obstacle index -> t_s first held at all
+        self._boot_ahead: dict | None = None   # obstacle index -> ahead_m on the first cycle
         self._detected: set[int] = set()      # obstacles with a detection distance already
         self.detections: list[dict] = []
         self.false_stop_s = 0.0
@@ -548,6 +551,9 @@ class Drive:
         in_stop = [o for o in truth if o["in_stop"] or o["meets"]]
         near = [o for o in truth if o["d_zone"] <= self.near_m]
         # detection streaks of the in-path obstacles ahead
+        if self._boot_ahead is None:          # the first cycle: what stood where at the start
+            self._boot_ahead = {o["k"]: (round(o["ahead"], 2) if math.isfinite(o["ahead"])
+                                         else None) for o in truth}
         for o in truth:
             k = o["k"]
             # in the straight corridor ahead (a collision's contact: what a forward-looking
@@ -557,8 +563,11 @@ class Drive:
             if math.isfinite(o["ahead"]) and o["ahead"] >= -0.5 and \
                     self._held(cells, o["pts_vehicle"]):     # the box's cells: vehicle frame
                 self._streak.setdefault(k, o["ahead"])
+                self._streak_t.setdefault(k, t_s)
+                self._first_held.setdefault(k, t_s)
             else:
                 self._streak.pop(k, None)
+                self._streak_t.pop(k, None)
         place = "near an obstacle" if near else ("headland" if self.headland() else "lane")
         # STOP episodes (stop_onset)
         if stop_onset(is_stop, obstacle_stop, self._prev_state, self._episode is not None):
@@ -588,6 +597,8 @@ class Drive:
                     "obstacle": nearest["id"], "cls": nearest["cls"],
                     "t_s": round(t_s, 1),
                     "distance_m": None if start is None else round(start, 2),
+                    "held_from_s": None if start is None
+                    else round(self._streak_t[nearest["k"]], 1),
                     "ahead_at_stop_m": round(nearest["ahead"], 2)
                     if math.isfinite(nearest["ahead"]) else None,
                     "speed_mps": round(v.speed, 2)})
@@ -709,6 +720,33 @@ class Drive:
         return {"result": self.result(wall_s, cpu_s), "rows": self.rows,
                 "events": self.events}
 
+    def _at_boot(self) -> list[dict]:
+        """What became of the obstacles standing in view when the box started (the scene's
+        ``placement == "at-boot"``: stubble-boot): how far ahead of the front it stood at the
+        start, when the box's cells first lay on it, its stop (``held_from_s``: the start of
+        the unbroken hold that ended in it; ``held_from_first_s``: that hold began within the
+        first second), and whether it was run into or missed."""
+        out = []
+        for k, o in enumerate(self.field.world.obstacles):
+            if getattr(o, "placement", "") != "at-boot":
+                continue
+            tag = f"{o.id}/{o.cls}"
+            det = next((d for d in self.detections if d["obstacle"] == o.id), None)
+            held_from = None if det is None else det.get("held_from_s")
+            out.append({
+                "obstacle": tag, "cls": o.cls, "tone": getattr(o, "tone", ""),
+                "ahead_at_start_m": (self._boot_ahead or {}).get(k),
+                "first_held_s": None if k not in self._first_held
+                else round(self._first_held[k], 1),
+                "stopped": det is not None,
+                "stop_t_s": None if det is None else det["t_s"],
+                "held_from_s": held_from,
+                "held_from_first_s": held_from is not None and held_from <= 1.0,
+                "collision": o.id in self.vehicle.obstacles_hit,
+                "missed": any(e["event"] == "missed" and e["obstacle"] == tag
+                              for e in self.events)})
+        return out
+
     def result(self, wall_s: float, cpu_s: float) -> dict:
         from appliance.zones import stop_length
         v = self.vehicle
@@ -749,6 +787,7 @@ class Drive:
             "false_stops_by_place": by_place, "false_stops_by_cause": by_cause,
             "detours": int(v.detours), "overrides": int(v.overrides),
             "detections": self.detections,
+            "at_boot": self._at_boot(),
             "cruise_mps": cruise,
             "stopping_distance_at_cruise_m": {
                 "box_stop_zone": round(stop_length(cruise, self.zones), 2),

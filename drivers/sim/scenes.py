@@ -23,7 +23,7 @@ THE API (for campaigns and tools; stable):
     sc.route_s_of(x, y)              # route distance of the route point nearest (x, y)
     sc.obstacles                     # == sc.world.obstacles; each has .id, .cls, .shape,
                                      #   .placement ("in-path" | "beside" | "between-lanes" |
-                                     #   "headland" | "crossing"), .pose ("standing" |
+                                     #   "headland" | "crossing" | "at-boot"), .pose ("standing" |
                                      #   "crouching" | "lying" | ""), .moving, .x, .y (NOW: walkers
                                      #   move; SimField.step moves them), .height_m ...
     sc.in_path_ids(margin_m=0.0)     # ids of the obstacles the vehicle hits if it never stops:
@@ -93,6 +93,12 @@ SCENE_KINDS: dict[str, str] = {
                            "through a bush row across the path (1-2 a path, drawn as "
                            "greenhouse-coverage's crossing person: 0.9-1.4 m aside, 0.6-1.6 "
                            "m/s, reaching the path when the sprayer is -5..25 m from them)",
+    "stubble-boot": "the stubble-coverage field and obstacles of the seed by day, and one person "
+                    "standing in the path 5-15 m ahead when the box starts (an adult, or a "
+                    "small child): what the box must hold from its first second and never "
+                    "learn as field (issue #14's boot target)",
+    "stubble-boot-night": "the stubble-boot field, obstacles and person of the same seed at "
+                          "night, lit only by the strobe at the cameras",
     "stubble-lookalike": "the stubble-day field and obstacle course with the obstacles that look "
                          "like the field: a person in khaki on the path, the stubble-coloured "
                          "drum and a stubble-textured crate (the learned cue's hard cases)",
@@ -401,7 +407,8 @@ def build_scene(name: str, seed: int = 0) -> Scene:
         raise ValueError(f"unknown scene {name!r}; known scenes: {', '.join(sorted(SCENES))}")
     seed = int(seed)
     if name in ("stubble-coverage", "stubble-coverage-night", "stubble-thin",
-                "stubble-thin-night", "stubble-crossing", "stubble-crossing-night"):
+                "stubble-thin-night", "stubble-crossing", "stubble-crossing-night",
+                "stubble-boot", "stubble-boot-night"):
         return _stubble_coverage(name, seed)
     if name in ("greenhouse-coverage", "greenhouse-crossing"):
         return _greenhouse_coverage(name, seed)
@@ -736,6 +743,25 @@ def _thin_obstacles(rng, length_m: float, passes: int, spacing_m: float,
     return obs
 
 
+def _boot_person(rng) -> Obstacle:
+    """stubble-boot: one person standing in the path when the box starts (issue #14: "booted
+    with a person 5-15 m ahead in the path"): the footprint's centre 5-15 m ahead of the
+    vehicle's origin at the start of the route (uniform; the front is 2.2 m ahead of the
+    origin, so 2.8-12.8 m ahead of the front) and up to 0.6 m to a side; an adult standing (70 %: the sizes and
+    clothing of ``_person``, hi-vis, field-coloured or other) or a small child (stubble-thin's
+    sizes). The first lane's first 60 m hold no other obstacle."""
+    x = float(rng.uniform(5.0, 15.0))
+    y = float(rng.uniform(-0.6, 0.6))
+    o = _person(rng, "b1", x, y, "standing")
+    if rng.uniform() < 0.3:
+        o.cls = "child"
+        o.length_m = float(rng.uniform(0.15, 0.22))
+        o.width_m = float(rng.uniform(0.25, 0.32))
+        o.height_m = float(rng.uniform(0.95, 1.25))
+    o.placement = "at-boot"
+    return o
+
+
 def _crossing_obstacles(rng, length_m: float, spacing_m: float, passes: int, lanes: list,
                         cruise: float, headland_m: float) -> list:
     """2-3 walkers crossing every lane (at least 40 m apart; none in the first 60 m of the
@@ -777,6 +803,8 @@ def _stubble_coverage(kind: str, seed: int) -> Scene:
         orng = np.random.default_rng([seed, 22])
         obstacles = _coverage_stubble_obstacles(orng, length, spacing, passes, lanes, cruise,
                                                 headland)
+        if kind.startswith("stubble-boot"):     # the coverage field and obstacles, and one more
+            obstacles = obstacles + [_boot_person(np.random.default_rng([seed, 26]))]
     world = World("stubble", seed, obstacles, waves, extent=_extent(path),
                   banks=np.array(fp["banks"], np.float32).reshape(-1, 5),
                   row_offset_m=float(rng.uniform(0, fp["row_spacing_m"])),

@@ -177,7 +177,7 @@ class Obstacle:
     z0: float = 0.0                   # ground height at the footprint centre (set by the world)
     # scene bookkeeping (scenes.py): where it was put and how it stands
     tone: str = ""                    # "hi-vis" | "field-coloured" | "own" | "other" | "animal"
-    placement: str = ""               # "in-path" | "beside" | "between-lanes" | "headland" | "crossing"
+    placement: str = ""               # "in-path" | "beside" | "between-lanes" | "headland" | "crossing" | "at-boot"
     pose: str = ""                    # "standing" | "crouching" | "lying" ("" for things)
     # a walker (person or animal crossing): it stands at (x, y) until the vehicle's route
     # distance reaches ``walk_trigger_s``, then walks at (vx_mps, vy_mps) for ``walk_time_s``,
