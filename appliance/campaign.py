@@ -342,6 +342,17 @@ def aggregate(results: list[dict]) -> dict:
         shadow["false_stops_per_hour_ci95"] = poisson_ci95(shadow["false_stops"], hours)
         from appliance.campaign_shadow import differences
         shadow["differences"] = differences(results)
+    # the people standing in the path when the box started (stubble-boot): how each fared
+    ab = [b for r in results for b in r.get("at_boot", ())]
+    at_boot = None if not ab else {
+        "obstacles": len(ab),
+        "held_from_first_s": sum(bool(b["held_from_first_s"]) for b in ab),
+        "stopped": sum(bool(b["stopped"]) for b in ab),
+        "collisions": sum(bool(b["collision"]) for b in ab),
+        "missed": sum(bool(b["missed"]) for b in ab),
+        "never_held": sum(b["first_held_s"] is None for b in ab),
+        "first_held_s_max": max((b["first_held_s"] for b in ab
+                                 if b["first_held_s"] is not None), default=None)}
     out = {
         "drives": len(results),
         "simulated_hours": round(hours, 6),
@@ -362,6 +373,7 @@ def aggregate(results: list[dict]) -> dict:
         # (a result.json written before the thirty-eighth session has none: 0)
         "slow_for_nothing_s": round(sum(r.get("slow_for_nothing_s", 0.0) for r in results), 1),
         "detection_distance_m": detection,
+        "at_boot": at_boot,
         "false_stops_by_place": dict(sorted(by_place.items())),
         "false_stops_by_cause": dict(sorted(by_cause.items(), key=lambda kv: -kv[1])),
         "model": {"samples_max": max(samples, default=None),
@@ -877,6 +889,13 @@ def format_summary(s: dict) -> str:
     for cls, d in s["detection_distance_m"].items():
         lines.append(f"detection distance {cls}: min {d['min']} m, median {d['median']} m "
                      f"({d['stops']} stops)")
+    b = s.get("at_boot")
+    if b:
+        lines.append(f"standing in the path at boot: {b['obstacles']} people; held from the "
+                     f"first second and stopped for {b['held_from_first_s']}, stopped for "
+                     f"{b['stopped']}, run into {b['collisions']}, missed {b['missed']}, never "
+                     f"held {b['never_held']} (first held at most {b['first_held_s_max']} s "
+                     "after the start)")
     ab = s.get("after_boot")
     if ab is not None:
         lines.append(f"after each drive's first {ab['boot_s']:.0f} s (the boot; a field box boots "

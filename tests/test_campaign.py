@@ -432,3 +432,88 @@ def test_a_collision_beside_the_body_is_reported_as_a_side_contact():
     result = res["result"]
     assert result["collisions_by_contact"] == {"side": 1}
     assert aggregate([result])["collisions_by_contact"] == {"side": 1}
+
+
+def test_the_person_standing_ahead_at_boot_is_scored_on_its_own():
+    """stubble-boot: result.json's ``at_boot`` says, for the person standing in the path when
+    the box started, when the box's cells first lay on it, whether the hold that ended in its
+    stop began within the first second, and whether it was run into or missed; each
+    detection gives the time its hold began (``held_from_s``)."""
+    from types import SimpleNamespace as NS
+    import numpy as np
+    from appliance.campaign_drive import Drive, deep_merge, drive_config_data
+    from hal.types import GateState
+    data = deep_merge(drive_config_data("stubble-boot", 2, stereo_scale=0.25),
+                      {"perception": {"pipelines": ["laser"]}})
+    drv = Drive("stubble-boot", 2, 0.01, config_data=data).build()
+    try:
+        k = next(i for i, o in enumerate(drv.field.world.obstacles) if o.placement == "at-boot")
+        o = drv.field.world.obstacles[k]
+        foot = np.array([[7.0 + a, b] for a in (-0.15, 0.15) for b in (-0.25, 0.25)])
+        person = {"k": k, "id": o.id, "cls": o.cls, "ahead": 4.8, "ahead_straight": 4.8,
+                  "pts": foot, "pts_vehicle": foot, "d_zone": 1.0, "meets": False,
+                  "meets_slow": False, "in_stop": False, "in_slow": True, "deep": False}
+        drv.truth = lambda stop_len_m, curvature_1pm=0.0: [person]
+        on = np.array([[7.0, 0.0]])
+
+        def cycle(i, state, reason, cells):
+            drv.on_cycle(NS(index=i, output=NS(state=state, reason=reason),
+                            verdict=NS(stop_len_m=3.8, nearest_m=4.8), cells_xy=cells,
+                            detections={}, faults=[], wall_ms={}))
+        cycle(0, GateState.STOP, "booting", np.zeros((0, 2)))
+        cycle(1, GateState.STOP, "booting", on)             # held from 0.1 s ...
+        cycle(2, GateState.STOP, "booting", np.zeros((0, 2)))   # ... lost once
+        for i in range(3, 30):                               # held again from 0.3 s
+            cycle(i, GateState.SLOW, "obstacle 4.8 m ahead in the slow zone", on)
+        person.update(ahead=2.0, in_stop=True, in_slow=False)
+        cycle(30, GateState.STOP, "obstacle 2.0 m ahead in the stop zone (3.8 m)", on)
+        r = drv.result(1.0, 1.0)
+        (b,) = r["at_boot"]
+        assert b["obstacle"] == f"{o.id}/{o.cls}" and b["ahead_at_start_m"] == 4.8
+        assert b["first_held_s"] == 0.1 and b["held_from_s"] == 0.3
+        assert b["stopped"] and b["stop_t_s"] == 3.0 and b["held_from_first_s"]
+        assert not b["collision"] and not b["missed"]
+        assert r["detections"][0]["held_from_s"] == 0.3
+        from appliance.campaign import aggregate
+        a = aggregate([r, r])["at_boot"]
+        assert a == {"obstacles": 2, "held_from_first_s": 2, "stopped": 2, "collisions": 0,
+                     "missed": 0, "never_held": 0, "first_held_s_max": 0.1}
+        del r["at_boot"]                      # a result.json from before: no such figure
+        assert aggregate([r])["at_boot"] is None
+    finally:
+        drv.daemon.shutdown()
+
+
+def test_a_person_at_boot_held_late_or_missed_says_so():
+    """The same person held only from 1.5 s on, then the box says CLEAR with it deep in the
+    stop zone: not held from the first second, not stopped for, missed."""
+    from types import SimpleNamespace as NS
+    import numpy as np
+    from appliance.campaign_drive import Drive, deep_merge, drive_config_data
+    from hal.types import GateState
+    data = deep_merge(drive_config_data("stubble-boot", 2, stereo_scale=0.25),
+                      {"perception": {"pipelines": ["laser"]}})
+    drv = Drive("stubble-boot", 2, 0.01, config_data=data).build()
+    try:
+        k = next(i for i, o in enumerate(drv.field.world.obstacles) if o.placement == "at-boot")
+        o = drv.field.world.obstacles[k]
+        foot = np.array([[4.0 + a, b] for a in (-0.15, 0.15) for b in (-0.25, 0.25)])
+        person = {"k": k, "id": o.id, "cls": o.cls, "ahead": 1.8, "ahead_straight": 1.8,
+                  "pts": foot, "pts_vehicle": foot, "d_zone": 0.0, "meets": False,
+                  "meets_slow": False, "in_stop": True, "in_slow": False, "deep": True}
+        drv.truth = lambda stop_len_m, curvature_1pm=0.0: [person]
+        for i in range(0, 15):
+            drv.on_cycle(NS(index=i, output=NS(state=GateState.STOP, reason="booting"),
+                            verdict=NS(stop_len_m=3.8, nearest_m=None),
+                            cells_xy=np.zeros((0, 2)), detections={}, faults=[],
+                            wall_ms={}))
+        for i in range(15, 20):
+            drv.on_cycle(NS(index=i, output=NS(state=GateState.CLEAR, reason="zone clear"),
+                            verdict=NS(stop_len_m=3.8, nearest_m=None),
+                            cells_xy=np.array([[4.0, 0.0]]), detections={}, faults=[],
+                            wall_ms={}))
+        (b,) = drv.result(1.0, 1.0)["at_boot"]
+        assert b["first_held_s"] == 1.5 and not b["stopped"] and b["held_from_s"] is None
+        assert not b["held_from_first_s"] and b["missed"] and not b["collision"]
+    finally:
+        drv.daemon.shutdown()

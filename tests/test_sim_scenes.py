@@ -354,3 +354,36 @@ def test_no_greenhouse_obstacle_under_the_vehicle_at_its_start():
     assert ids == ["g1", "g2", "g3", "g4", "g5"]          # g6 (under the vehicle) left out
     o = [o for o in build_scene("greenhouse-coverage", 1065).world.obstacles if o.id == "g7"]
     assert o and abs(o[0].y - 0.77) < 0.01              # beside the vehicle at its start: kept
+
+
+def test_boot_scene_is_the_coverage_field_and_obstacles_with_a_person_ahead_at_start():
+    """stubble-boot: the stubble-coverage field and obstacles of the seed, and one person (an
+    adult standing, or a small child) in the path 5-15 m ahead of the vehicle's origin when the
+    box starts (issue #14: "booted with a person 5-15 m ahead in the path"); the night kind is
+    the same field, obstacles and person under the strobe."""
+    c, b, n = (build_scene(k, 4) for k in ("stubble-coverage", "stubble-boot",
+                                            "stubble-boot-night"))
+    assert {k: v for k, v in b.params.items() if k not in ("obstacles", "walkers")} == \
+        {k: v for k, v in c.params.items() if k not in ("obstacles", "walkers")}
+    assert b.world.waves.tobytes() == c.world.waves.tobytes()
+    assert _sig(b)[1:] == _sig(n)[1:] and n.illumination == "night-strobe"
+    assert b.illumination == "day" and _sig(b) == _sig(build_scene("stubble-boot", 4))
+    # the coverage obstacles as they are, and one more
+    assert _sig(b)[1][:-1] == _sig(c)[1]
+    start = b.path[0]
+    classes = set()
+    for seed in range(12):
+        sc = build_scene("stubble-boot", seed)
+        boot = [o for o in sc.obstacles if o.placement == "at-boot"]
+        assert len(boot) == 1
+        o = boot[0]
+        classes.add(o.cls)
+        assert o.cls in ("person", "child") and o.pose == "standing" and not o.moving
+        assert 5.0 <= o.x - start[0] <= 15.0 and abs(o.y - start[1]) <= 0.6
+        assert o.id in sc.in_path_ids()
+        # nothing else in the first lane's path in its first 60 m: the boot person is what
+        # the vehicle meets there
+        others = [q for q in sc.obstacles if q is not o and q.id in sc.in_path_ids()
+                  and 0 <= q.x <= 60 and abs(q.y) < 1.5]
+        assert not others, [(q.id, q.x, q.y) for q in others]
+    assert classes == {"person", "child"}
