@@ -387,3 +387,8 @@ def test_boot_scene_is_the_coverage_field_and_obstacles_with_a_person_ahead_at_s
                   and 0 <= q.x <= 60 and abs(q.y) < 1.5]
         assert not others, [(q.id, q.x, q.y) for q in others]
     assert classes == {"person", "child"}
+    # the safety driver waits 30 s at the stop for the person before steering round (the
+    # model updates with the person in view, still); the other kinds keep 5 s
+    assert b.detour_after_s == n.detour_after_s == 30.0 and c.detour_after_s == 5.0
+    assert SimField("stubble-boot", 4, sensors=("laser",)).vehicle.detour_after_s == 30.0
+    assert SimField("stubble-coverage", 4, sensors=("laser",)).vehicle.detour_after_s == 5.0

@@ -131,6 +131,7 @@ class Scene:
     track_m: float
     bounce_deg: float                 # amplitude of the seeded suspension oscillation
     detour_offset_m: float = 0.0      # how far the safety driver steers round (0 = never)
+    detour_after_s: float = 5.0       # how long the safety driver waits at a real stop first
     # no room to steer round (a greenhouse lane): the safety driver clears a real obstacle the
     # box stopped for out of the way instead (carries it off, the person steps aside)
     clear_after_stop: bool = False
@@ -749,7 +750,10 @@ def _boot_person(rng) -> Obstacle:
     vehicle's origin at the start of the route (uniform; the front is 2.2 m ahead of the
     origin, so 2.8-12.8 m ahead of the front) and up to 0.6 m to a side; an adult standing (70 %: the sizes and
     clothing of ``_person``, hi-vis, field-coloured or other) or a small child (stubble-thin's
-    sizes). The first lane's first 60 m hold no other obstacle."""
+    sizes). The first lane's first 60 m hold no other obstacle. The scene's safety driver waits
+    30 s at a stop for it before steering round (``Scene.detour_after_s``): the person stands
+    in front of the stopped vehicle while the box's novelty model updates (every 4 s) with the
+    person in view; "never learnt as field" is tested over those updates."""
     x = float(rng.uniform(5.0, 15.0))
     y = float(rng.uniform(-0.6, 0.6))
     o = _person(rng, "b1", x, y, "standing")
@@ -826,6 +830,10 @@ def _stubble_coverage(kind: str, seed: int) -> Scene:
                  slow_mps=1.0, footprint=(0.4, 2.6, 1.5), wheelbase_m=1.8, track_m=1.2,
                  bounce_deg=1.2, detour_offset_m=3.0, sensors=("stereo", "laser"), lanes=lanes,
                  headland_m=headland, params=params,
+                 # stubble-boot: the person stands in front of the stopped vehicle for 30 s
+                 # (talking to the driver) before the driver steers round: the novelty model
+                 # updates every 4 s meanwhile, with the person in view, still
+                 detour_after_s=30.0 if kind.startswith("stubble-boot") else 5.0,
                  sun=None if night else _sun_vector(sky["sun_elevation_deg"],
                                                     sky["sun_azimuth_deg"]),
                  cloud=0.0 if night else sky["cloud"], wind_mps=sky["wind_mps"],

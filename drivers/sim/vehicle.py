@@ -44,11 +44,12 @@ from .scenes import Scene
 class Vehicle:
     def __init__(self, scene: Scene, seed: int = 0, decel_mps2: float = 2.5,
                  accel_mps2: float = 0.8, start_speed_mps: float | None = None,
-                 start_s_m: float = 0.0, detour_after_s: float = 5.0,
+                 start_s_m: float = 0.0, detour_after_s: float | None = None,
                  detour_offset_m: float | None = None, detour_trigger_m: float = 6.0,
                  override_after_s: float = 10.0, override_m: float = 5.0):
         self.scene = scene
-        self.detour_after_s = float(detour_after_s)
+        self.detour_after_s = float(getattr(scene, "detour_after_s", 5.0) if detour_after_s
+                                    is None else detour_after_s)
         self.detour_offset_m = (scene.detour_offset_m if detour_offset_m is None
                                 else float(detour_offset_m))
         self.detour_trigger_m = float(detour_trigger_m)
