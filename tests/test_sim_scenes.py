@@ -392,3 +392,6 @@ def test_boot_scene_is_the_coverage_field_and_obstacles_with_a_person_ahead_at_s
     assert b.detour_after_s == n.detour_after_s == 30.0 and c.detour_after_s == 5.0
     assert SimField("stubble-boot", 4, sensors=("laser",)).vehicle.detour_after_s == 30.0
     assert SimField("stubble-coverage", 4, sensors=("laser",)).vehicle.detour_after_s == 5.0
+    # the vehicle stands when the box starts (the other kinds start at cruise)
+    assert SimField("stubble-boot", 4, sensors=("laser",)).vehicle.speed == 0.0
+    assert SimField("stubble-coverage", 4, sensors=("laser",)).vehicle.speed == 2.5

@@ -132,6 +132,7 @@ class Scene:
     bounce_deg: float                 # amplitude of the seeded suspension oscillation
     detour_offset_m: float = 0.0      # how far the safety driver steers round (0 = never)
     detour_after_s: float = 5.0       # how long the safety driver waits at a real stop first
+    start_speed_mps: float | None = None   # the vehicle's speed at the start (None: cruise)
     # no room to steer round (a greenhouse lane): the safety driver clears a real obstacle the
     # box stopped for out of the way instead (carries it off, the person steps aside)
     clear_after_stop: bool = False
@@ -753,7 +754,8 @@ def _boot_person(rng) -> Obstacle:
     sizes). The first lane's first 60 m hold no other obstacle. The scene's safety driver waits
     30 s at a stop for it before steering round (``Scene.detour_after_s``): the person stands
     in front of the stopped vehicle while the box's novelty model updates (every 4 s) with the
-    person in view; "never learnt as field" is tested over those updates."""
+    person in view; "never learnt as field" is tested over those updates. The vehicle stands
+    when the box starts (``Scene.start_speed_mps`` 0; the other kinds start at cruise)."""
     x = float(rng.uniform(5.0, 15.0))
     y = float(rng.uniform(-0.6, 0.6))
     o = _person(rng, "b1", x, y, "standing")
@@ -834,6 +836,8 @@ def _stubble_coverage(kind: str, seed: int) -> Scene:
                  # (talking to the driver) before the driver steers round: the novelty model
                  # updates every 4 s meanwhile, with the person in view, still
                  detour_after_s=30.0 if kind.startswith("stubble-boot") else 5.0,
+                 # ... and the vehicle stands when the box starts (the others start at cruise)
+                 start_speed_mps=0.0 if kind.startswith("stubble-boot") else None,
                  sun=None if night else _sun_vector(sky["sun_elevation_deg"],
                                                     sky["sun_azimuth_deg"]),
                  cloud=0.0 if night else sky["cloud"], wind_mps=sky["wind_mps"],

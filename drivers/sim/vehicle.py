@@ -75,6 +75,8 @@ class Vehicle:
         self._yaw = np.unwrap(yaw)
         self.path_length_m = float(self._s[-1])
         self.s = float(start_s_m)
+        if start_speed_mps is None:
+            start_speed_mps = getattr(scene, "start_speed_mps", None)
         self.speed = float(scene.cruise_mps if start_speed_mps is None else start_speed_mps)
         self.command = GateState.CLEAR
         self.time_s = 0.0
