@@ -215,6 +215,12 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
                                  doc="boot_guard: only cells whose top is at least this many "
                                      "cells below the horizon row are kept out of the first "
                                      "update (the sky and the skyline are learnt)")
+    boot_above_horizon: bool = _f(False, doc="boot_guard: above the horizon, the cells that "
+                                              "hold points of the boot check's candidates "
+                                              "(grounded, supported, boot_min_points; no "
+                                              "margin) are kept out of the first update too: a "
+                                              "standing person's head and shoulders, which the "
+                                              "horizon rule lets the first update learn")
     boot_support_min: float = _f(0.5, lo=0.0, hi=1.0,
                                  doc="boot_guard: the vertical support (support_min) its "
                                      "points need, whatever support_min is")
@@ -892,7 +898,13 @@ class StereoNoveltyPipeline(Pipeline):
         # 640 px): their body stays out of the model.
         vh = self._horizon_row(calib, vehicle) * (k / kd)
         top = np.arange(rows) * res.cell_px
-        exclude[top < vh + o.boot_horizon_cells * res.cell_px, :] = False
+        above = top < vh + o.boot_horizon_cells * res.cell_px
+        exclude[above, :] = False
+        if o.boot_above_horizon and inside.any():
+            # the candidates' own points there, cell by cell (no margin: a margin above the
+            # horizon is sky and skyline, the lock-in the rule above is for)
+            own = obstacle_cells(PX[inside] * (k / kd), (rows, cols), res.cell_px, 0.0)
+            exclude |= own & above[:, None]
         cue = extra.get("learned")
         if cue is not None and np.any(cue):
             if cue.shape != (rows, cols):
