@@ -73,30 +73,15 @@ def test_boot_above_horizon_keeps_a_standing_persons_head_out_of_the_first_updat
     adult, 41 % of their cells novel after the boot, 100 % to a model that never saw them).
     With the option the boot candidates' own cells above the horizon are kept out too."""
     from drivers.sim import SimField
-    from drivers.sim.render import render_view
-    from drivers.sim.world import MAT_OBSTACLE
-    from appliance.perception import SensorInputs
-    from appliance.perception.stereo_novelty import StereoNoveltyConfig, StereoNoveltyPipeline
+    from appliance.perception.stereo_novelty import StereoNoveltyConfig
     assert StereoNoveltyConfig().boot_above_horizon is False
     f = SimField("stubble-boot-night", 8, sensors=("stereo",), stereo_scale=0.5)
     k = next(i for i, o in enumerate(f.world.obstacles) if o.placement == "at-boot")
     frames = [f.render(0, 0), f.render(100_000_000, 1)]
-    cal = f.stereo_calibration
-    c, r, _ = f._sensor_pose(cal.mount)
-    person_px = render_view(f.world, f.lighting, c, r, cal.camera, t_max=80.0,
-                            rel_step=0.0057).mat == MAT_OBSTACLE + k
-    got = {}
-    for on in (False, True):
-        o = dataclasses.replace(StereoNoveltyConfig(), model_state="off",
-                                boot_above_horizon=on)
-        p = StereoNoveltyPipeline(o, background=False)
-        try:
-            for s in frames:
-                p.process(SensorInputs(stamp_ns=s.stereo.stamp_ns, stereo=s.stereo,
-                                       vehicle=s.vehicle))
-            got[on] = boot_learnt._novel_shares(p, frames[1], person_px)
-        finally:
-            p.close()
+    person_px = boot_learnt.person_pixels(f, k)
+    got = {on: boot_learnt.judge(frames, person_px, dataclasses.replace(
+        StereoNoveltyConfig(), model_state="off", boot_above_horizon=on))[0]
+        for on in (False, True)}
     (off_p, off_f, n), (on_p, on_f, _) = got[False], got[True]
     assert n >= 10
     assert off_p <= 0.6 and on_p >= 0.9, (off_p, on_p)

@@ -434,6 +434,26 @@ def test_a_collision_beside_the_body_is_reported_as_a_side_contact():
     assert aggregate([result])["collisions_by_contact"] == {"side": 1}
 
 
+def _boot_drive(x_m: float, ahead_m: float, in_stop: bool):
+    """A stubble-boot drive (the laser alone: nothing rendered for the camera) whose truth is
+    only its person at boot, ``x_m`` ahead of the origin (``ahead_m`` of the front), and that
+    person's truth row (change it to move them)."""
+    import numpy as np
+    from appliance.campaign_drive import Drive, deep_merge, drive_config_data
+    data = deep_merge(drive_config_data("stubble-boot", 2, stereo_scale=0.25),
+                      {"perception": {"pipelines": ["laser"]}})
+    drv = Drive("stubble-boot", 2, 0.01, config_data=data).build()
+    k = next(i for i, o in enumerate(drv.field.world.obstacles) if o.placement == "at-boot")
+    o = drv.field.world.obstacles[k]
+    foot = np.array([[x_m + a, b] for a in (-0.15, 0.15) for b in (-0.25, 0.25)])
+    person = {"k": k, "id": o.id, "cls": o.cls, "ahead": ahead_m, "ahead_straight": ahead_m,
+              "pts": foot, "pts_vehicle": foot, "d_zone": 0.0 if in_stop else 1.0,
+              "meets": False, "meets_slow": False, "in_stop": in_stop, "in_slow": not in_stop,
+              "deep": in_stop}
+    drv.truth = lambda stop_len_m, curvature_1pm=0.0: [person]
+    return drv, o, person
+
+
 def test_the_person_standing_ahead_at_boot_is_scored_on_its_own():
     """stubble-boot: result.json's ``at_boot`` says, for the person standing in the path when
     the box started, when the box's cells first lay on it, whether the hold that ended in its
@@ -441,19 +461,9 @@ def test_the_person_standing_ahead_at_boot_is_scored_on_its_own():
     detection gives the time its hold began (``held_from_s``)."""
     from types import SimpleNamespace as NS
     import numpy as np
-    from appliance.campaign_drive import Drive, deep_merge, drive_config_data
     from hal.types import GateState
-    data = deep_merge(drive_config_data("stubble-boot", 2, stereo_scale=0.25),
-                      {"perception": {"pipelines": ["laser"]}})
-    drv = Drive("stubble-boot", 2, 0.01, config_data=data).build()
+    drv, o, person = _boot_drive(7.0, 4.8, in_stop=False)
     try:
-        k = next(i for i, o in enumerate(drv.field.world.obstacles) if o.placement == "at-boot")
-        o = drv.field.world.obstacles[k]
-        foot = np.array([[7.0 + a, b] for a in (-0.15, 0.15) for b in (-0.25, 0.25)])
-        person = {"k": k, "id": o.id, "cls": o.cls, "ahead": 4.8, "ahead_straight": 4.8,
-                  "pts": foot, "pts_vehicle": foot, "d_zone": 1.0, "meets": False,
-                  "meets_slow": False, "in_stop": False, "in_slow": True, "deep": False}
-        drv.truth = lambda stop_len_m, curvature_1pm=0.0: [person]
         on = np.array([[7.0, 0.0]])
 
         def cycle(i, state, reason, cells):
@@ -489,19 +499,9 @@ def test_a_person_at_boot_held_late_or_missed_says_so():
     stop zone: not held from the first second, not stopped for, missed."""
     from types import SimpleNamespace as NS
     import numpy as np
-    from appliance.campaign_drive import Drive, deep_merge, drive_config_data
     from hal.types import GateState
-    data = deep_merge(drive_config_data("stubble-boot", 2, stereo_scale=0.25),
-                      {"perception": {"pipelines": ["laser"]}})
-    drv = Drive("stubble-boot", 2, 0.01, config_data=data).build()
+    drv, o, person = _boot_drive(4.0, 1.8, in_stop=True)
     try:
-        k = next(i for i, o in enumerate(drv.field.world.obstacles) if o.placement == "at-boot")
-        o = drv.field.world.obstacles[k]
-        foot = np.array([[4.0 + a, b] for a in (-0.15, 0.15) for b in (-0.25, 0.25)])
-        person = {"k": k, "id": o.id, "cls": o.cls, "ahead": 1.8, "ahead_straight": 1.8,
-                  "pts": foot, "pts_vehicle": foot, "d_zone": 0.0, "meets": False,
-                  "meets_slow": False, "in_stop": True, "in_slow": False, "deep": True}
-        drv.truth = lambda stop_len_m, curvature_1pm=0.0: [person]
         for i in range(0, 15):
             drv.on_cycle(NS(index=i, output=NS(state=GateState.STOP, reason="booting"),
                             verdict=NS(stop_len_m=3.8, nearest_m=None),

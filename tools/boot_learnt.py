@@ -7,6 +7,8 @@ run with ``--save-models`` (each drive keeps its novelty model as it was at the 
 the box saves it). For each drive, the drive's first frame (the vehicle at its start, the person
 standing ahead) is rendered again and judged twice by the stereo-novelty pipeline:
 
+- **never seen**: a fresh pipeline's first update made from the same view with the person taken
+  out of the world, then the frame with the person: what novelty can say of them at all;
 - **after the boot**: a fresh pipeline's first update (the boot check keeping what it vouches
   for out of it) and the next frame's raw novelty: what the model holds from the start;
 - **at the drive's end**: a pipeline loaded with the drive's saved model.
@@ -45,7 +47,7 @@ def _cell_shares(mask_px: np.ndarray, rows: int, cols: int, cell_px: int) -> np.
     return m.reshape(rows, cell_px, cols, cell_px).mean(axis=(1, 3))
 
 
-def _novel_shares(pipe, sample, person_px: np.ndarray) -> tuple[float, float, int]:
+def _novel_shares(pipe, person_px: np.ndarray) -> tuple[float, float, int]:
     """(person's cells novel, field's cells novel, person's cells) for the pipeline's last
     result (``pipe.last``), the person's pixels ``person_px`` of the camera's image."""
     res = pipe.last[0]
@@ -59,14 +61,41 @@ def _novel_shares(pipe, sample, person_px: np.ndarray) -> tuple[float, float, in
     return p, float(raw[field].mean()) if field.any() else float("nan"), int(person.sum())
 
 
+def person_pixels(f, k: int) -> np.ndarray:
+    """The pixels of obstacle ``k`` in the left camera's image of the field ``f`` as it stands
+    (the renderer's own material mask)."""
+    from drivers.sim.render import render_view
+    from drivers.sim.world import MAT_OBSTACLE
+    cal = f.stereo_calibration
+    c, r, _ = f._sensor_pose(cal.mount)
+    view = render_view(f.world, f.lighting, c, r, cal.camera, t_max=80.0, rel_step=0.0057)
+    return view.mat == MAT_OBSTACLE + k
+
+
+def judge(frames, person_px: np.ndarray, opts=None, state: dict | None = None
+          ) -> tuple[tuple[float, float, int], int]:
+    """A fresh stereo-novelty pipeline (options ``opts``; loaded with the saved ``state`` when
+    given) run over ``frames`` (simulator samples); the last frame's
+    :func:`_novel_shares` and the model's samples."""
+    from appliance.perception import SensorInputs
+    from appliance.perception.stereo_novelty import StereoNoveltyConfig, StereoNoveltyPipeline
+    o = opts or dataclasses.replace(StereoNoveltyConfig(), model_state="off")
+    p = StereoNoveltyPipeline(o, background=False)
+    try:
+        if state is not None:
+            p.novelty.import_state(state)
+        for s in frames:
+            p.process(SensorInputs(stamp_ns=s.stereo.stamp_ns, stereo=s.stereo,
+                                   vehicle=s.vehicle))
+        return _novel_shares(p, person_px), int(p.novelty.model.size)
+    finally:
+        p.close()
+
+
 def judge_drive(kind: str, seed: int, model_file: Path, stereo_scale: float = 0.5) -> dict:
     """The row for one drive (see the module's docstring)."""
     from appliance import novelty_store
-    from appliance.perception import SensorInputs
-    from appliance.perception.stereo_novelty import StereoNoveltyConfig, StereoNoveltyPipeline
     from drivers.sim import SimField
-    from drivers.sim.render import render_view
-    from drivers.sim.world import MAT_OBSTACLE
 
     f = SimField(kind, seed, sensors=("stereo",), stereo_scale=stereo_scale)
     boot = [i for i, o in enumerate(f.world.obstacles) if o.placement == "at-boot"]
@@ -76,35 +105,21 @@ def judge_drive(kind: str, seed: int, model_file: Path, stereo_scale: float = 0.
     ob = f.world.obstacles[k]
     s0 = f.render(0, 0)
     s1 = f.render(100_000_000, 1)           # the vehicle stands at the start: the same view
-    cal = f.stereo_calibration
-    c, r, _ = f._sensor_pose(cal.mount)
-    view = render_view(f.world, f.lighting, c, r, cal.camera, t_max=80.0, rel_step=0.0057)
-    person_px = view.mat == MAT_OBSTACLE + k
-    opts = dataclasses.replace(StereoNoveltyConfig(), model_state="off")
-
-    def inputs(s):
-        return SensorInputs(stamp_ns=s.stereo.stamp_ns, stereo=s.stereo, vehicle=s.vehicle)
-
-    fresh = StereoNoveltyPipeline(opts, background=False)
-    try:
-        fresh.process(inputs(s0))
-        fresh.process(inputs(s1))
-        boot_p, boot_f, cells = _novel_shares(fresh, s1, person_px)
-    finally:
-        fresh.close()
+    person_px = person_pixels(f, k)
+    (boot_p, boot_f, cells), _ = judge([s0, s1], person_px)
+    # a model that never saw them: the first update from the same view with the person taken
+    # out of the world, judging the frame with the person (what novelty can say of them at all)
+    g = SimField(kind, seed, sensors=("stereo",), stereo_scale=stereo_scale)
+    del g.world.obstacles[k]
+    g.vehicle._footprints = [g.vehicle._footprint_points(o) for o in g.world.obstacles]
+    (never_p, _, _), _ = judge([g.render(0, 0), s1], person_px)
     state = novelty_store.read(model_file, then="drive skipped")
     if state is None:
         raise SystemExit(f"{model_file}: no readable novelty model")
-    saved = StereoNoveltyPipeline(opts, background=False)
-    try:
-        saved.novelty.import_state(state)
-        saved.process(inputs(s0))
-        end_p, end_f, _ = _novel_shares(saved, s0, person_px)
-        samples = int(saved.novelty.model.size)
-    finally:
-        saved.close()
+    (end_p, end_f, _), samples = judge([s0], person_px, state=state)
     return {"drive": f"{kind}-{seed}", "cls": ob.cls, "tone": getattr(ob, "tone", ""),
-            "person_cells": cells, "boot_person_novel": boot_p, "boot_field_novel": boot_f,
+            "person_cells": cells, "never_saw_person_novel": never_p,
+            "boot_person_novel": boot_p, "boot_field_novel": boot_f,
             "end_person_novel": end_p, "end_field_novel": end_f,
             "end_updates": int(state.get("updates", 0)), "end_samples": samples}
 
@@ -144,7 +159,8 @@ def main(argv=None) -> int:
         rows.append(row)
         if not a.json:
             print(f"{row['drive']:<24s} {row['cls']:<7s} {row['tone']:<15s} "
-                  f"{row['person_cells']:3d} cells | after the boot: person "
+                  f"{row['person_cells']:3d} cells | never seen: "
+                  f"{100 * row['never_saw_person_novel']:5.1f} % | after the boot: person "
                   f"{100 * row['boot_person_novel']:5.1f} % novel, field "
                   f"{100 * row['boot_field_novel']:4.1f} % | at the drive's end "
                   f"({row['end_updates']} updates): person {100 * row['end_person_novel']:5.1f} "
@@ -152,11 +168,14 @@ def main(argv=None) -> int:
     if a.json:
         print(json.dumps(rows, indent=1))
         return 0
+    novel_never = [r for r in rows if r["never_saw_person_novel"] >= 0.5]
     novel_boot = [r for r in rows if r["boot_person_novel"] >= 0.5]
     kept = [r for r in novel_boot if r["end_person_novel"] >= 0.5]
-    print(f"{len(rows)} drives; the person novel after the boot (half its cells or more) in "
+    print(f"{len(rows)} drives; the person novel (half its cells or more) to a model that "
+          f"never saw them in {len(novel_never)}, after the boot in "
           f"{len(novel_boot)}, of which still novel at the drive's end in {len(kept)}; "
-          f"mean share of its cells novel: after the boot "
+          f"mean share of its cells novel: never seen "
+          f"{100 * np.nanmean([r['never_saw_person_novel'] for r in rows]):.1f} %, after the boot "
           f"{100 * np.nanmean([r['boot_person_novel'] for r in rows]):.1f} %, at the end "
           f"{100 * np.nanmean([r['end_person_novel'] for r in rows]):.1f} %")
     return 0
