@@ -67,14 +67,16 @@ def test_a_folder_without_boot_drives_is_one_clear_line(tmp_path, capsys):
 
 
 def test_boot_above_horizon_keeps_a_standing_persons_head_out_of_the_first_update():
-    """``boot_above_horizon`` (off by default; docs/front-end.md "The person at boot, driven"):
-    the boot check keeps only cells under the horizon out of the first update, so a person 8 m
-    ahead has the top of their body learnt at boot (training stubble-boot-night 8: a hi-vis
-    adult, 41 % of their cells novel after the boot, 100 % to a model that never saw them).
-    With the option the boot candidates' own cells above the horizon are kept out too."""
+    """``boot_above_horizon`` (on by default since the thirty-ninth session; docs/front-end.md
+    "The person at boot, driven"): without it the boot check keeps only cells under the horizon
+    out of the first update, so a person 8 m ahead has the top of their body learnt at boot
+    (training stubble-boot-night 8: a hi-vis adult, 41 % of their cells novel after the boot,
+    100 % to a model that never saw them). With it the boot candidates' own cells above the
+    horizon are kept out too, for candidates within 2 m of the centre line."""
     from drivers.sim import SimField
     from appliance.perception.stereo_novelty import StereoNoveltyConfig
-    assert StereoNoveltyConfig().boot_above_horizon is False
+    assert StereoNoveltyConfig().boot_above_horizon is True
+    assert StereoNoveltyConfig().boot_above_horizon_half_width_m == 2.0
     f = SimField("stubble-boot-night", 8, sensors=("stereo",), stereo_scale=0.5)
     k = next(i for i, o in enumerate(f.world.obstacles) if o.placement == "at-boot")
     frames = [f.render(0, 0), f.render(100_000_000, 1)]
