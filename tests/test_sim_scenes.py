@@ -380,10 +380,11 @@ def test_boot_scene_is_the_coverage_field_and_obstacles_with_a_person_ahead_at_s
         classes.add(o.cls)
         assert o.cls in ("person", "child") and o.pose == "standing" and not o.moving
         assert 5.0 <= o.x - start[0] <= 15.0 and abs(o.y - start[1]) <= 0.6
-        assert o.id in sc.in_path_ids()
+        in_path = set(sc.in_path_ids())
+        assert o.id in in_path
         # nothing else in the first lane's path in its first 60 m: the boot person is what
         # the vehicle meets there
-        others = [q for q in sc.obstacles if q is not o and q.id in sc.in_path_ids()
+        others = [q for q in sc.obstacles if q is not o and q.id in in_path
                   and 0 <= q.x <= 60 and abs(q.y) < 1.5]
         assert not others, [(q.id, q.x, q.y) for q in others]
     assert classes == {"person", "child"}
