@@ -206,6 +206,16 @@ class GridConfig:
                                        "front (zones.front_x_m) are held (the near blind "
                                        "region; farther out, what leaves the view is beside "
                                        "the path)")
+    hold_blind_look_frames: int = _f(0, lo=0, hi=1000,
+                                     doc="hold_blind: a held cell is let go when a camera that "
+                                         "keeps its frame's pair (stereo-novelty) has looked "
+                                         "again and seen past it (nothing upright at its place "
+                                         "from 0.5 to 1 m up: appliance/perception/look.py) in "
+                                         "this many cycles running: a stubble phantom held at a "
+                                         "standstill ends; a thing the camera sees, or cannot "
+                                         "tell (too little texture, a flat match), stays held. "
+                                         "0 = off (a hold ends only when the cell is back in "
+                                         "the stereo's range or leaves the region)")
     laser_confirm_radius_m: float = _f(0.3, lo=0.05, hi=2.0,
                                        doc="laser_confirm_by \"points\": a camera point in the "
                                            "same or a neighbouring square of this side")

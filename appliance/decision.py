@@ -234,6 +234,7 @@ class DecisionCore:
         self.held_xy = np.zeros((0, 2))
         self._held_cells = np.zeros((0, 2))    # ... as the grid cells' centres
         self._hold_seeds = np.zeros((0, 2))
+        self._hold_past = np.zeros(0, np.int64)   # per seed: cycles running a camera saw past it
         self._hold_ns: int | None = None
         self._had_camera = False
 
@@ -462,7 +463,18 @@ class DecisionCore:
         dt = 0.0 if self._hold_ns is None else (now_ns - self._hold_ns) * 1e-9
         self._hold_ns = now_ns
         seeds = move_with_vehicle(self._hold_seeds, dt, vehicle)
-        held = seeds[self._blind_test(detections)(seeds)]    # the one test the tracks share
+        blind = self._blind_test(detections)(seeds)          # the one test the tracks share
+        held, past = seeds[blind], self._hold_past[blind]
+        if g.hold_blind_look_frames > 0 and len(held):
+            # a camera that looked again and saw past a held cell, cycles running: let go
+            looks = [o.view.look for o in camera_views(detections)
+                     if getattr(o.view, "look", None) is not None]
+            seen = np.zeros(len(held), bool)
+            for lk in looks:
+                seen |= lk.sees_past(held)
+            past = np.where(seen, past + 1, 0)
+            keep = past < g.hold_blind_look_frames
+            held, past = held[keep], past[keep]
         lo, hi = self._hold_region()
         # next cycle's candidates: this cycle's confirmed cells near the front (a margin of
         # 1 m beyond the range: what moves into it before the next look) and the held ones
@@ -482,11 +494,13 @@ class DecisionCore:
                 ok |= near_squares(c, seeds, g.cell_m)
             c = c[ok]
         nxt = np.concatenate([c, held]) if len(held) else c
+        cnt = np.concatenate([np.zeros(len(c), np.int64), past]) if len(held) else \
+            np.zeros(len(c), np.int64)
         if len(nxt):      # one per grid cell (the first: a confirmed cell before a held one)
             key = np.floor(nxt / g.cell_m).astype(np.int64)
             _, first = np.unique(key, axis=0, return_index=True)
-            nxt = nxt[np.sort(first)]
-        self._hold_seeds = nxt
+            nxt, cnt = nxt[np.sort(first)], cnt[np.sort(first)]
+        self._hold_seeds, self._hold_past = nxt, cnt
         self.held_xy = held
         ix, iy, ok = self.grid.cell_index(held)
         add = self._held_cells = self.grid.centres(ix[ok], iy[ok])

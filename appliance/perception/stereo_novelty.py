@@ -28,6 +28,7 @@ from .cue import CueOptions, LearnedCue
 from .candidates import cluster_candidates, on_footprints, stalk_points
 from .ground import GroundModel
 from .novelty import NoveltyDetector, dilate_cells, mask_to_camera, obstacle_cells
+from .look import StereoLook
 from .view import CameraView, pixels_of
 from .stereo import (StereoConfig, StereoPipeline, band_mask, check_matcher, dedupe_cells, drop_dark,
                      disparity_regions, downscale, local_heights, make_matcher, mask_boxes,
@@ -832,7 +833,9 @@ class StereoNoveltyPipeline(Pipeline):
         # what this camera saw where, for the laser's returns ([grid] laser_confirm_by): the
         # masks at the descriptor resolution, half a novelty cell of slack up and down
         view = CameraView(self._source_masks, Kd if kd > 1 else K, M, fr.calib.mount.position,
-                          o.max_range_m, slack_px=res.cell_px // 2, min_depth_m=o.min_depth_m)
+                          o.max_range_m, slack_px=res.cell_px // 2, min_depth_m=o.min_depth_m,
+                          look=StereoLook(fr.left, fr.right, cam.fx, cam.fy, cam.cx, cam.cy,
+                                          fr.calib.baseline_m, M, fr.calib.mount.position))
         return Detections(points_xy=xy, candidates=cands, ground=for_laser, view=view, debug={
             "ground": ground.to_dict(), "candidates": len(cands),
             "boot": None if boot is None else {"candidates": len(boot["candidates"]),

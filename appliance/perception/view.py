@@ -37,7 +37,8 @@ class CameraView:
     ``t``), and the range within which it vouches for what it sees."""
 
     def __init__(self, masks: dict, K: np.ndarray, R: np.ndarray, t: np.ndarray,
-                 max_range_m: float, slack_px: int = 0, min_depth_m: float = 0.0):
+                 max_range_m: float, slack_px: int = 0, min_depth_m: float = 0.0,
+                 look=None):
         self.masks = {k: m for k, m in masks.items() if k in MASK_NAMES and m is not None}
         shapes = {m.shape[:2] for m in self.masks.values()}
         if len(shapes) > 1:
@@ -51,6 +52,9 @@ class CameraView:
         # nearer than this along the optical axis the camera's pipeline cannot range a thing
         # (stereo: the disparity search's near end, min_depth_m)
         self.min_depth_m = float(min_depth_m)
+        # the frame's pair kept to look again at a place nearer than that (a StereoLook:
+        # appliance/perception/look.py; [grid] hold_blind_look_frames), or None
+        self.look = look
 
     def project(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(u, v, inside) of vehicle-frame points: pixel coordinates in the masks' size and
