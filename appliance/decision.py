@@ -467,8 +467,8 @@ class DecisionCore:
         held, past = seeds[blind], self._hold_past[blind]
         if g.hold_blind_look_frames > 0 and len(held):
             # a camera that looked again and saw past a held cell, cycles running: let go
-            looks = [o.view.look for o in camera_views(detections)
-                     if getattr(o.view, "look", None) is not None]
+            looks = [o.view.stereo_look for o in camera_views(detections)
+                     if getattr(o.view, "stereo_look", None) is not None]
             seen = np.zeros(len(held), bool)
             for lk in looks:
                 seen |= lk.sees_past(held)

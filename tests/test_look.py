@@ -80,7 +80,7 @@ def _cfg(frames):
 def _dets(xs, pair):
     view = CameraView({"novelty": np.zeros((H, W), np.uint8)}, K, MOUNT.camera_to_vehicle(),
                       MOUNT.position, 20.0, 0, min_depth_m=3.0,
-                      look=None if pair is None else _look(*pair))
+                      stereo_look=None if pair is None else _look(*pair))
     pts = np.array([[x, 0.0] for x in xs], np.float32).reshape(-1, 2)
     return {"stereo-novelty": Detections(points_xy=pts, view=view)}
 

@@ -834,8 +834,9 @@ class StereoNoveltyPipeline(Pipeline):
         # masks at the descriptor resolution, half a novelty cell of slack up and down
         view = CameraView(self._source_masks, Kd if kd > 1 else K, M, fr.calib.mount.position,
                           o.max_range_m, slack_px=res.cell_px // 2, min_depth_m=o.min_depth_m,
-                          look=StereoLook(fr.left, fr.right, cam.fx, cam.fy, cam.cx, cam.cy,
-                                          fr.calib.baseline_m, M, fr.calib.mount.position))
+                          stereo_look=StereoLook(fr.left, fr.right, cam.fx, cam.fy, cam.cx,
+                                                 cam.cy, fr.calib.baseline_m, M,
+                                                 fr.calib.mount.position))
         return Detections(points_xy=xy, candidates=cands, ground=for_laser, view=view, debug={
             "ground": ground.to_dict(), "candidates": len(cands),
             "boot": None if boot is None else {"candidates": len(boot["candidates"]),

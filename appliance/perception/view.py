@@ -38,7 +38,7 @@ class CameraView:
 
     def __init__(self, masks: dict, K: np.ndarray, R: np.ndarray, t: np.ndarray,
                  max_range_m: float, slack_px: int = 0, min_depth_m: float = 0.0,
-                 look=None):
+                 stereo_look=None):
         self.masks = {k: m for k, m in masks.items() if k in MASK_NAMES and m is not None}
         shapes = {m.shape[:2] for m in self.masks.values()}
         if len(shapes) > 1:
@@ -54,7 +54,7 @@ class CameraView:
         self.min_depth_m = float(min_depth_m)
         # the frame's pair kept to look again at a place nearer than that (a StereoLook:
         # appliance/perception/look.py; [grid] hold_blind_look_frames), or None
-        self.look = look
+        self.stereo_look = stereo_look
 
     def project(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(u, v, inside) of vehicle-frame points: pixel coordinates in the masks' size and
