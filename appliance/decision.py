@@ -494,8 +494,7 @@ class DecisionCore:
                 ok |= near_squares(c, seeds, g.cell_m)
             c = c[ok]
         nxt = np.concatenate([c, held]) if len(held) else c
-        cnt = np.concatenate([np.zeros(len(c), np.int64), past]) if len(held) else \
-            np.zeros(len(c), np.int64)
+        cnt = np.concatenate([np.zeros(len(c), np.int64), past])
         if len(nxt):      # one per grid cell (the first: a confirmed cell before a held one)
             key = np.floor(nxt / g.cell_m).astype(np.int64)
             _, first = np.unique(key, axis=0, return_index=True)

@@ -130,13 +130,6 @@ def _rendered_look(f):
                       cal.mount.camera_to_vehicle(), cal.mount.position)
 
 
-def _place(f, obs):
-    for o in obs:
-        o.z0 = float(f.world.ground(np.float32(o.x), np.float32(o.y)))
-    f.world.obstacles[:] = obs
-    f.vehicle._footprints = [f.vehicle._footprint_points(o) for o in obs]
-
-
 def test_on_the_rendered_field_obstacles_are_never_seen_past_and_empty_places_are():
     """Training seed 13 of stubble-boot by day (the campaign's 640 x 512): the field's places
     1.2-1.9 m ahead of the front (2.2 m) with nothing there, and real obstacles of
@@ -145,7 +138,7 @@ def test_on_the_rendered_field_obstacles_are_never_seen_past_and_empty_places_ar
     f = SimField("stubble-boot", seed=13, sensors=("stereo",), stereo_scale=0.5)
     pool = copy.deepcopy(SimField("stubble-day", seed=13, sensors=("stereo",),
                                   stereo_scale=0.5).world.obstacles)
-    _place(f, [])
+    f.set_obstacles([])
     lk = _rendered_look(f)
     places = np.array([[2.2 + a, y] for a in (1.2, 1.5, 1.75, 1.9) for y in (-0.6, -0.2, 0.2, 0.6)])
     past = lk.sees_past(places)
@@ -153,7 +146,7 @@ def test_on_the_rendered_field_obstacles_are_never_seen_past_and_empty_places_ar
     released = []
     for k, o in enumerate([o for o in pool if not o.moving][:8]):
         o.x, o.y = 2.2 + (1.2, 1.5, 1.75)[k % 3], (0.0, 0.3)[k % 2]
-        _place(f, [o])
+        f.set_obstacles([o])
         if _rendered_look(f).sees_past(np.array([[o.x - 0.3 * o.length_m, o.y], [o.x, o.y]])).any():
             released.append((o.cls, o.x))
     assert released == []

@@ -18,11 +18,8 @@ def _field(scene="stubble-day", seed=0, sensors=("stereo", "laser", "rgbd"), sca
 
 
 def _place(field: SimField, obs: list[Obstacle]) -> None:
-    """Replace the world's obstacles (tests only), setting their ground heights."""
-    for o in obs:
-        o.z0 = float(field.world.ground(np.float32(o.x), np.float32(o.y)))
-    field.world.obstacles[:] = obs
-    field.vehicle._footprints = [field.vehicle._footprint_points(o) for o in obs]
+    """Replace the world's obstacles, setting their ground heights."""
+    field.set_obstacles(obs)
 
 
 def _cam_point(field, mount, p_world, offset=(0.0, 0.0, 0.0)):

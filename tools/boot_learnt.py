@@ -110,8 +110,7 @@ def judge_drive(kind: str, seed: int, model_file: Path, stereo_scale: float = 0.
     # a model that never saw them: the first update from the same view with the person taken
     # out of the world, judging the frame with the person (what novelty can say of them at all)
     g = SimField(kind, seed, sensors=("stereo",), stereo_scale=stereo_scale)
-    del g.world.obstacles[k]
-    g.vehicle._footprints = [g.vehicle._footprint_points(o) for o in g.world.obstacles]
+    g.set_obstacles([o for i, o in enumerate(g.world.obstacles) if i != k], on_ground=False)
     (never_p, _, _), _ = judge([g.render(0, 0), s1], person_px)
     state = novelty_store.read(model_file, then="drive skipped")
     if state is None:

@@ -215,6 +215,17 @@ class SimField:
         return SimSample(stereo, rgbd, laser, self.vehicle_state(stamp_ns, seq), self.truth(),
                          self.vehicle.pose())
 
+    def set_obstacles(self, obs: list, on_ground: bool = True) -> None:
+        """Replace the world's obstacles with ``obs`` (a probe's or a test's field: one
+        obstacle set where it is wanted, or one taken away), stood on the ground at their x, y
+        (``on_ground``; else their z0 as they are), and the vehicle's collision footprints with
+        them."""
+        for o in obs:
+            if on_ground:
+                o.z0 = float(self.world.ground(np.float32(o.x), np.float32(o.y)))
+        self.world.obstacles[:] = obs
+        self.vehicle._footprints = [self.vehicle._footprint_points(o) for o in obs]
+
     # ---- ground truth -----------------------------------------------------------------------
     def _cameras(self):
         """(name, centre, R optical->world, PinholeCalibration, (min, max) range) of the cameras."""
