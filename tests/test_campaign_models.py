@@ -18,7 +18,7 @@ SL = '[perception]\npipelines = ["stereo-novelty", "laser"]\n'
 
 
 def _campaign(out, cfg, **kw):
-    return Campaign(SCENES, "3", 0.2, out, workers=1, config_file=str(cfg), stereo_scale=0.25,
+    return Campaign(SCENES, "3", 0.1, out, workers=1, config_file=str(cfg), stereo_scale=0.25,
                     progress=False, report=False, **kw)
 
 
@@ -93,7 +93,7 @@ def test_models_from_a_campaign_without_them_is_one_clear_error(pair, tmp_path, 
     with pytest.raises(CampaignError, match="runs no novelty model"):
         _campaign(tmp_path / "y", laser, save_models=True)
     # from the command line: one line, no traceback, exit 2
-    rc = main(["campaign", "--scene", SCENES, "--seeds", "3", "--minutes", "0.2", "--out",
+    rc = main(["campaign", "--scene", SCENES, "--seeds", "3", "--minutes", "0.1", "--out",
                str(tmp_path / "z"), "--workers", "1", "--config", str(cfg),
                "--models-from", str(base / "booted")])
     err = capsys.readouterr().err
