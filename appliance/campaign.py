@@ -726,10 +726,12 @@ def register(sub) -> None:
     c.add_argument("--config", metavar="FILE", help="TOML merged over each drive's config "
                    "(e.g. [perception] pipelines)")
     c.add_argument("--shadow", metavar="FILE",
-                   help="TOML of a second configuration (merged over each drive's config as "
-                        "--config is) judged on each drive's own inputs every cycle, never "
-                        "driving: its stops scored against the same truth, and the false "
-                        "stops only one side made (docs/proving-ground.md 'Shadow')")
+                   help="TOML of a second configuration judged on each drive's own inputs "
+                        "every cycle, never driving: its stops scored against the same truth, "
+                        "and the false stops only one side made (docs/proving-ground.md "
+                        "'Shadow'). It is merged over each drive's default config, not over "
+                        "--config's: a shadow file names everything it differs in from the "
+                        "defaults")
     c.add_argument("--save-models", action="store_true",
                    help="keep each drive's novelty model at its end (saved at the daemon's "
                         "shutdown, as the box saves it) in DIR/drives/KIND-SEED/models/, for "

@@ -132,3 +132,17 @@ def test_differences_list_where_each_drive_and_its_shadow_parted():
     assert d[2]["what"] == "missed by the shadow only: g3/person (the drive said STOP)"
     assert d[3]["what"] == "false stop only the drive's own config made"
     assert d[4]["what"] == "false stop only the shadow made"
+
+
+def test_a_shadow_is_laid_over_the_defaults_not_over_config():
+    """`--config A --shadow B`: B is merged over the drive's default config, as A is, not over
+    A (the help says so; a shadow file names everything it differs in from the defaults)."""
+    plain = make_spec("stubble-coverage", 1, 0.1, 0.25)
+    spec = make_spec("stubble-coverage", 1, 0.1, 0.25,
+                     {"perception": {"pipelines": ["laser"]}},
+                     {"grid": {"hold_blind_look_frames": 3}})
+    assert spec["config"]["perception"]["pipelines"] == ["laser"]
+    assert spec["shadow"]["perception"]["pipelines"] == \
+        plain["config"]["perception"]["pipelines"] != ["laser"]
+    assert spec["shadow"]["grid"]["hold_blind_look_frames"] == 3
+    assert "hold_blind_look_frames" not in spec["config"].get("grid", {})
