@@ -640,6 +640,51 @@ def _row_counts(b: np.ndarray) -> np.ndarray:
     return b.sum(axis=1)
 
 
+def match_correlation(left: np.ndarray, right: np.ndarray, px: np.ndarray, d: np.ndarray,
+                      scale: float = 1.0, half_rows: int = 3, half_cols: int = 5,
+                      min_std: float = 2.0) -> np.ndarray:
+    """Per point (pixels ``px`` (N, 2) of the grey pair, disparities ``d`` (N,)): the
+    zero-mean normalised correlation of the left window about it and the right window about
+    its match (``u - d``, rounded), ``(2 half_rows + 1) x (2 half_cols + 1)`` pixels at 640
+    wide (times ``scale``). NaN where a window leaves the image or either is flatter than
+    ``min_std`` grey levels (the correlation says nothing there).
+
+    A dense matcher's smoothness carries a disparity into pixels whose own windows do not
+    match there: on the simulated stubble such points, 0.5-0.6 m up at the stop zone's near
+    edge, are what the false stops at slow speed were (docs/front-end.md "The match's own
+    correlation")."""
+    n = len(px)
+    out = np.full(n, np.nan)
+    if n == 0:
+        return out
+    hr = max(1, int(round(half_rows * scale)))
+    hc = max(1, int(round(half_cols * scale)))
+    H, W = left.shape[:2]
+    u = np.asarray(px[:, 0], np.intp)
+    v = np.asarray(px[:, 1], np.intp)
+    ur = np.rint(u - np.asarray(d, np.float64)).astype(np.intp)
+    ok = (v - hr >= 0) & (v + hr < H) & (u - hc >= 0) & (u + hc < W) & (ur - hc >= 0) & (
+        ur + hc < W) & np.isfinite(np.asarray(d, np.float64))
+    if not ok.any():
+        return out
+    dy = np.arange(-hr, hr + 1)[None, :, None]
+    dx = np.arange(-hc, hc + 1)[None, None, :]
+    rows = v[ok][:, None, None] + dy
+    a = left[rows, u[ok][:, None, None] + dx].astype(np.float32)
+    b = right[rows, ur[ok][:, None, None] + dx].astype(np.float32)
+    a = a.reshape(len(a), -1)
+    b = b.reshape(len(b), -1)
+    a -= a.mean(1, keepdims=True)
+    b -= b.mean(1, keepdims=True)
+    sa = np.sqrt((a * a).mean(1))
+    sb = np.sqrt((b * b).mean(1))
+    flat = (sa < min_std) | (sb < min_std)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = (a * b).mean(1) / (sa * sb)
+    out[np.flatnonzero(ok)] = np.where(flat, np.nan, r)
+    return out
+
+
 def vertical_support(disp: np.ndarray, px: np.ndarray, pts: np.ndarray, calib, ground,
                      samples: int = 8, tol_px: float = 1.5, tol_frac: float = 0.08,
                      vehicle=None, use_attitude: bool = False,

@@ -32,7 +32,8 @@ from .look import StereoLook
 from .view import CameraView, pixels_of
 from .stereo import (StereoConfig, StereoPipeline, band_mask, check_matcher, dedupe_cells, drop_dark,
                      disparity_regions, downscale, local_heights, make_matcher, mask_boxes,
-                     match_factor, merge_strips, point_confidence, points_from_disparity,
+                     match_correlation, match_factor, merge_strips, point_confidence,
+                     points_from_disparity,
                      scaled_calibration, strip_boxes, vertical_support, local_ground_of,
                      heights_above)
 
@@ -197,6 +198,14 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
                                       "[perception.stereo]; a mismatch floating over an "
                                       "unmatched column, the false stops' signature, has none; "
                                       "before the false-stop work: 0 = off)")
+    # Off by default: built and measured in the forty-first session (docs/front-end.md "The
+    # match's own correlation")
+    match_ncc_min: float = _f(0.0, lo=0.0, hi=1.0,
+                              doc="an obstacle point whose left and right windows (7 x 11 "
+                                  "pixels at 640 wide, grey, at its disparity) correlate "
+                                  "(zero-mean, normalised) below this is dropped; a window "
+                                  "too flat to say (grey std < 2) or off the image keeps its "
+                                  "point. 0 = off")
     dark_level: float = _f(8.0, lo=0.0, hi=255.0, doc="no disparity where the 7x7 mean grey "
                                                       "level is below this (before issue #14: "
                                                       "0 = off)")
@@ -481,8 +490,11 @@ class StereoNoveltyPipeline(Pipeline):
     def _pair_for(self, fr, k: int, matcher):
         """:meth:`_pair` as ``matcher`` takes it: grey (converted once per frame and level)
         when the matcher matches grey."""
-        if not matcher.grey_input:
-            return self._pair(fr, k)
+        return self._grey_pair(fr, k) if matcher.grey_input else self._pair(fr, k)
+
+    def _grey_pair(self, fr, k: int):
+        """The pair at 1/``k``, grey (converted once per frame and level, shared with a grey
+        matcher's :meth:`_pair_for`)."""
         cache = self._pyramid
         key = ("grey", k)
         if cache.get("frame") is not fr or key not in cache:
@@ -794,6 +806,13 @@ class StereoNoveltyPipeline(Pipeline):
                                    vehicle=inputs.vehicle, use_attitude=o.use_attitude,
                                    known_min=o.support_known_min)
             keep[idx[sup < o.support_min]] = False
+        if o.match_ncc_min > 0 and keep.any():
+            idx = np.flatnonzero(keep)
+            gl, gr = self._grey_pair(fr, k)
+            pi = px[idx].astype(np.intp)
+            ncc = match_correlation(gl, gr, pi, disp[pi[:, 1], pi[:, 0]],
+                                    scale=gl.shape[1] / 640.0)
+            keep[idx[ncc < o.match_ncc_min]] = False        # (NaN: nothing said, kept)
         self._drop_stalks(pts, px, h, keep, k / float(kd))
         xy = dedupe_cells(pts[keep, :2])
         cands = self._candidates(disp, pts[keep], px[keep], h[keep], k / float(kd))
