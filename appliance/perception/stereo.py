@@ -662,9 +662,11 @@ def match_correlation(left: np.ndarray, right: np.ndarray, px: np.ndarray, d: np
     H, W = left.shape[:2]
     u = np.asarray(px[:, 0], np.intp)
     v = np.asarray(px[:, 1], np.intp)
-    ur = np.rint(u - np.asarray(d, np.float64)).astype(np.intp)
+    d = np.asarray(d, np.float64)
+    finite = np.isfinite(d)
+    ur = np.rint(u - np.where(finite, d, 0.0)).astype(np.intp)
     ok = (v - hr >= 0) & (v + hr < H) & (u - hc >= 0) & (u + hc < W) & (ur - hc >= 0) & (
-        ur + hc < W) & np.isfinite(np.asarray(d, np.float64))
+        ur + hc < W) & finite
     if not ok.any():
         return out
     dy = np.arange(-hr, hr + 1)[None, :, None]

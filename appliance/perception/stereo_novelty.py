@@ -806,13 +806,16 @@ class StereoNoveltyPipeline(Pipeline):
                                    vehicle=inputs.vehicle, use_attitude=o.use_attitude,
                                    known_min=o.support_known_min)
             keep[idx[sup < o.support_min]] = False
+        ncc_dropped = 0
         if o.match_ncc_min > 0 and keep.any():
             idx = np.flatnonzero(keep)
             gl, gr = self._grey_pair(fr, k)
             pi = px[idx].astype(np.intp)
             ncc = match_correlation(gl, gr, pi, disp[pi[:, 1], pi[:, 0]],
                                     scale=gl.shape[1] / 640.0)
-            keep[idx[ncc < o.match_ncc_min]] = False        # (NaN: nothing said, kept)
+            low = ncc < o.match_ncc_min                      # (NaN: nothing said, kept)
+            keep[idx[low]] = False
+            ncc_dropped = int(low.sum())
         self._drop_stalks(pts, px, h, keep, k / float(kd))
         xy = dedupe_cells(pts[keep, :2])
         cands = self._candidates(disp, pts[keep], px[keep], h[keep], k / float(kd))
@@ -865,6 +868,7 @@ class StereoNoveltyPipeline(Pipeline):
                 "height_m": canopy,
                 "dropped_points": 0 if under_canopy is None else int(under_canopy.sum())},
             "novel_cells_raw": int(res.raw.sum()),
+            "ncc_dropped": ncc_dropped,
             # cells of the novelty grid each cue raised (a pixel mask counts in cell areas)
             "cue_cells": {n: int(np.count_nonzero(c)) if c.shape == res.mask.shape else
                           int(round(np.count_nonzero(c) / float(res.cell_px ** 2)))
