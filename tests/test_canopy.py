@@ -165,15 +165,9 @@ def lane_17():
     125 m: 9 s of tall stubble on a rise, then the approach to its cattle (c1, 1.45 m tall,
     on the lane at 156 m) from 31 to 11 m; the truth of each frame."""
     from drivers.sim import SimField
-    from hal.types import GateState
     f = SimField("stubble-coverage", seed=17, sensors=("stereo",), stereo_scale=0.5)
     f.vehicle.s = 125.0
-    frames = []
-    for i in range(80):
-        s = f.render(i * 100_000_000, i)
-        frames.append((s.stereo, s.vehicle, s.truth))
-        f.step(0.1, GateState.CLEAR)
-    return frames
+    return [(s.stereo, s.vehicle, s.truth) for s in f.open_loop(80)]
 
 
 def _drive(frames, **opts):

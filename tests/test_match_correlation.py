@@ -67,14 +67,8 @@ def course_13():
     """20 rendered frames (10 Hz at cruise, open loop) of training seed 13's day course: a
     look-alike drum 9.2 -> 4.4 m and a person 12.8 -> 8.0 m ahead, two more farther."""
     from drivers.sim import SimField
-    from hal.types import GateState
     f = SimField("stubble-day", seed=13, sensors=("stereo",), stereo_scale=0.5)
-    frames = []
-    for i in range(20):
-        s = f.render(i * 100_000_000, i)
-        frames.append((s.stereo, s.vehicle, s.truth))
-        f.step(0.1, GateState.CLEAR)
-    return frames
+    return [(s.stereo, s.vehicle, s.truth) for s in f.open_loop(20)]
 
 
 def _run(frames, **opts):

@@ -119,6 +119,16 @@ class SimField:
         self.vehicle.step(dt_s, command)
         self._advance_world()
 
+    def open_loop(self, frames: int, dt_s: float = 0.1) -> list:
+        """``frames`` samples (:meth:`render`, stamped and numbered from 0), the vehicle
+        driving on under CLEAR between them: a probe's or a test's course of real rendered
+        frames, open loop."""
+        out = []
+        for i in range(int(frames)):
+            out.append(self.render(int(round(i * dt_s * 1e9)), i))
+            self.step(dt_s, GateState.CLEAR)
+        return out
+
     def _advance_world(self) -> None:
         """The world's clock follows the vehicle's; walkers walk (their footprints move)."""
         for k in self.world.advance(self.vehicle.time_s, self.vehicle.s):
