@@ -15,6 +15,7 @@ import pytest
 
 from appliance.perception.stereo_novelty import (StereoNoveltyConfig, StereoNoveltyPipeline,
                                                  canopy_height)
+from tests.stereo_runs import kept_points
 
 
 def _coarse(rng, n_tuft=2000, top=0.7):
@@ -175,27 +176,17 @@ def _drive(frames, **opts):
     (front 2.2 m, 6 m ahead, 1.25 m each side); and whether the cattle is held (a point within
     0.3 m of its footprint) with its distance."""
     from appliance.evaluation import footprint_distance
-    from appliance.perception import SensorInputs
-    o = dataclasses.replace(StereoNoveltyConfig(), model_state="off", update_every_frames=2,
-                            **opts)
-    pipe = StereoNoveltyPipeline(o, background=False)
     stubble, cattle, canopy = [], {}, None
-    try:
-        for st, veh, truth in frames:
-            det = pipe.process(SensorInputs(stamp_ns=st.stamp_ns, stereo=st, vehicle=veh))
-            pts, _px, _h, keep, _k = pipe.last_points
-            kp = pts[keep, :2]
-            on = np.zeros(len(kp), bool)
-            for t in truth:
-                on |= footprint_distance(kp, t) <= 0.3
-            zone = (kp[:, 0] > 2.2) & (kp[:, 0] < 8.2) & (np.abs(kp[:, 1]) < 1.25)
-            stubble.append(int((zone & ~on).sum()))
-            c1 = next((t for t in truth if t["id"] == "c1"), None)
-            if c1 is not None:
-                cattle[round(c1["x_m"], 1)] = bool((footprint_distance(kp, c1) <= 0.3).any())
-            canopy = det.debug["canopy"]
-    finally:
-        pipe.close()
+    for det, kp, truth in kept_points(frames, **opts):
+        on = np.zeros(len(kp), bool)
+        for t in truth:
+            on |= footprint_distance(kp, t) <= 0.3
+        zone = (kp[:, 0] > 2.2) & (kp[:, 0] < 8.2) & (np.abs(kp[:, 1]) < 1.25)
+        stubble.append(int((zone & ~on).sum()))
+        c1 = next((t for t in truth if t["id"] == "c1"), None)
+        if c1 is not None:
+            cattle[round(c1["x_m"], 1)] = bool((footprint_distance(kp, c1) <= 0.3).any())
+        canopy = det.debug["canopy"]
     return stubble, cattle, canopy
 
 

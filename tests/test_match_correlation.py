@@ -1,14 +1,13 @@
 """The match's own correlation ([perception.stereo-novelty] match_ncc_min,
 appliance/perception/stereo.py match_correlation): an obstacle point whose left and right
 windows do not correlate at its disparity is dropped."""
-import dataclasses
-
 import cv2
 import numpy as np
 import pytest
 
 from appliance.perception.stereo import match_correlation
-from appliance.perception.stereo_novelty import StereoNoveltyConfig, StereoNoveltyPipeline
+from appliance.perception.stereo_novelty import StereoNoveltyConfig
+from tests.stereo_runs import kept_points
 
 
 def _pair(d=12, seed=0, shape=(100, 200)):
@@ -76,27 +75,17 @@ def _run(frames, **opts):
     2.2-17 m ahead, the kept points off every obstacle within 12 m ahead and 2 m aside, and
     the points the option dropped."""
     from appliance.evaluation import footprint_distance
-    from appliance.perception import SensorInputs
-    o = dataclasses.replace(StereoNoveltyConfig(), model_state="off", update_every_frames=2,
-                            **opts)
-    pipe = StereoNoveltyPipeline(o, background=False)
     out = []
-    try:
-        for st, veh, truth in frames:
-            det = pipe.process(SensorInputs(stamp_ns=st.stamp_ns, stereo=st, vehicle=veh))
-            pts, _px, _h, keep, _k = pipe.last_points
-            kp = pts[keep, :2]
-            on = np.zeros(len(kp), bool)
-            held = {}
-            for t in truth:
-                near = footprint_distance(kp, t) <= 0.3
-                on |= near
-                if 2.2 < t["x_m"] < 17.0:
-                    held[t["id"]] = (bool(near.any()), t["x_m"])
-            off = int((~on & (kp[:, 0] < 12.0) & (np.abs(kp[:, 1]) < 2.0)).sum())
-            out.append((held, off, det.debug["ncc_dropped"]))
-    finally:
-        pipe.close()
+    for det, kp, truth in kept_points(frames, **opts):
+        on = np.zeros(len(kp), bool)
+        held = {}
+        for t in truth:
+            near = footprint_distance(kp, t) <= 0.3
+            on |= near
+            if 2.2 < t["x_m"] < 17.0:
+                held[t["id"]] = (bool(near.any()), t["x_m"])
+        off = int((~on & (kp[:, 0] < 12.0) & (np.abs(kp[:, 1]) < 2.0)).sum())
+        out.append((held, off, det.debug["ncc_dropped"]))
     return out
 
 
