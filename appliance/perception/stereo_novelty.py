@@ -206,6 +206,11 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
                                   "(zero-mean, normalised) below this is dropped; a window "
                                   "too flat to say (grey std < 2) or off the image keeps its "
                                   "point. 0 = off")
+    match_ncc_from_m: float = _f(0.0, lo=0.0, hi=100.0,
+                                 doc="match_ncc_min: only points at least this far along the "
+                                     "camera's axis are tested (nearer ones, at the search's "
+                                     "near edge, are how an obstacle nearer than the search "
+                                     "shows at all). 0 = every point")
     dark_level: float = _f(8.0, lo=0.0, hi=255.0, doc="no disparity where the 7x7 mean grey "
                                                       "level is below this (before issue #14: "
                                                       "0 = off)")
@@ -809,10 +814,14 @@ class StereoNoveltyPipeline(Pipeline):
         ncc_dropped = 0
         if o.match_ncc_min > 0 and keep.any():
             idx = np.flatnonzero(keep)
-            gl, gr = self._grey_pair(fr, k)
             pi = px[idx].astype(np.intp)
-            ncc = match_correlation(gl, gr, pi, disp[pi[:, 1], pi[:, 0]],
-                                    scale=gl.shape[1] / 640.0)
+            dk = disp[pi[:, 1], pi[:, 0]]
+            if o.match_ncc_from_m > 0:
+                # z-depth = fx B / d: nearer than match_ncc_from_m is d above fx B / that
+                far = dk <= calib.camera.fx * calib.baseline_m / o.match_ncc_from_m
+                idx, pi, dk = idx[far], pi[far], dk[far]
+            gl, gr = self._grey_pair(fr, k)
+            ncc = match_correlation(gl, gr, pi, dk, scale=gl.shape[1] / 640.0)
             low = ncc < o.match_ncc_min                      # (NaN: nothing said, kept)
             keep[idx[low]] = False
             ncc_dropped = int(low.sum())
