@@ -54,6 +54,14 @@ def test_the_option_is_read_and_checked():
     cfg = parse_config({"perception": {"pipelines": ["stereo-novelty"],
                                        "stereo-novelty": {"match_ncc_min": 0.5}}})
     assert pipeline_options(cfg, "stereo-novelty").match_ncc_min == 0.5
+    assert StereoNoveltyConfig().match_ncc_from_m == 0.0             # every point tested
+    cfg = parse_config({"perception": {"pipelines": ["stereo-novelty"], "stereo-novelty": {
+        "match_ncc_min": 0.5, "match_ncc_from_m": 3.5}}})
+    assert pipeline_options(cfg, "stereo-novelty").match_ncc_from_m == 3.5
+    with pytest.raises(ConfigError) as e:
+        parse_config({"perception": {"pipelines": ["stereo-novelty"],
+                                     "stereo-novelty": {"match_ncc_from_m": -1.0}}})
+    assert "match_ncc_from_m" in str(e.value)
     for bad in (1.5, -0.1, "high"):
         with pytest.raises(ConfigError) as e:
             parse_config({"perception": {"pipelines": ["stereo-novelty"],
@@ -113,3 +121,12 @@ def test_rendered_frames_lose_half_the_stray_points_and_keep_the_near_obstacles(
                     lost_far.append((k, x))
     assert not lost_near, lost_near
     assert held_far >= 8 and len(lost_far) <= 2, (held_far, lost_far)
+    # match_ncc_from_m: only points at least that far along the camera's axis are tested;
+    # beyond every point (100 m) nothing is dropped and the points are the defaults' own
+    none = _run(course_13, match_ncc_min=0.5, match_ncc_from_m=100.0)
+    assert [d for _, _, d in none] == [0] * len(none)
+    assert [(h, x) for h, x, _ in none] == [(h, x) for h, x, _ in base]
+    # from 3.5 m (what was measured closed loop) it drops some, fewer than from 0 over the
+    # course (the near points it spares are tested from 0)
+    part = _run(course_13, match_ncc_min=0.5, match_ncc_from_m=3.5)
+    assert 0 < sum(d for _, _, d in part) < sum(d for _, _, d in opt)
