@@ -650,8 +650,9 @@ def match_correlation(left: np.ndarray, right: np.ndarray, px: np.ndarray, d: np
     ``min_std`` grey levels (the correlation says nothing there).
 
     A dense matcher's smoothness carries a disparity into pixels whose own windows do not
-    match there: on the simulated stubble such points, 0.5-0.6 m up at the stop zone's near
-    edge, are what the false stops at slow speed were (docs/front-end.md "The match's own
+    match there: the simulated stubble's phantoms 0.5-0.6 m up at the stop zone's near edge
+    are such points, but so are a real obstacle's points at the search's near edge when its
+    face is nearer than the search reaches (docs/front-end.md "The match's own
     correlation")."""
     n = len(px)
     out = np.full(n, np.nan)
