@@ -811,20 +811,7 @@ class StereoNoveltyPipeline(Pipeline):
                                    vehicle=inputs.vehicle, use_attitude=o.use_attitude,
                                    known_min=o.support_known_min)
             keep[idx[sup < o.support_min]] = False
-        ncc_dropped = 0
-        if o.match_ncc_min > 0 and keep.any():
-            idx = np.flatnonzero(keep)
-            pi = px[idx].astype(np.intp)
-            dk = disp[pi[:, 1], pi[:, 0]]
-            if o.match_ncc_from_m > 0:
-                # z-depth = fx B / d: nearer than match_ncc_from_m is d above fx B / that
-                far = dk <= calib.camera.fx * calib.baseline_m / o.match_ncc_from_m
-                idx, pi, dk = idx[far], pi[far], dk[far]
-            gl, gr = self._grey_pair(fr, k)
-            ncc = match_correlation(gl, gr, pi, dk, scale=gl.shape[1] / 640.0)
-            low = ncc < o.match_ncc_min                      # (NaN: nothing said, kept)
-            keep[idx[low]] = False
-            ncc_dropped = int(low.sum())
+        ncc_dropped = self._drop_poor_matches(fr, k, calib, disp, px, keep)
         self._drop_stalks(pts, px, h, keep, k / float(kd))
         xy = dedupe_cells(pts[keep, :2])
         cands = self._candidates(disp, pts[keep], px[keep], h[keep], k / float(kd))
@@ -1010,6 +997,27 @@ class StereoNoveltyPipeline(Pipeline):
         dropped[idx[~self._other_cue(px[idx], k / float(kd))]] = True
         keep &= ~dropped
         return canopy, dropped
+
+    def _drop_poor_matches(self, fr, k: int, calib, disp, px, keep) -> int:
+        """``match_ncc_min``: clear ``keep`` (in place) for the obstacle points whose left and
+        right windows do not correlate at their disparity (:func:`.stereo.match_correlation`),
+        those nearer than ``match_ncc_from_m`` along the camera's axis spared. ``disp``, ``px``
+        (N, 2) and ``calib`` at matching resolution (1/``k``). Returns how many were dropped."""
+        o: StereoNoveltyConfig = self.options
+        if o.match_ncc_min <= 0 or not keep.any():
+            return 0
+        idx = np.flatnonzero(keep)
+        pi = px[idx].astype(np.intp)
+        dk = disp[pi[:, 1], pi[:, 0]]
+        if o.match_ncc_from_m > 0:
+            # z-depth = fx B / d: nearer than match_ncc_from_m is d above fx B / that
+            far = dk <= calib.camera.fx * calib.baseline_m / o.match_ncc_from_m
+            idx, pi, dk = idx[far], pi[far], dk[far]
+        gl, gr = self._grey_pair(fr, k)
+        ncc = match_correlation(gl, gr, pi, dk, scale=gl.shape[1] / 640.0)
+        low = ncc < o.match_ncc_min                          # (NaN: nothing said, kept)
+        keep[idx[low]] = False
+        return int(low.sum())
 
     def _drop_stalks(self, pts, px, h, keep, f: float, names=("novelty", "learned")) -> int:
         """``stalk_max_width_m``: clear ``keep`` (in place) for the obstacle points that are a
