@@ -1,6 +1,7 @@
 """The campaign's shadow (appliance/campaign_shadow.py): a second configuration judged on a
 drive's own inputs every cycle, never driving. Real drives of the simulated greenhouse
-(training seed 7: a true STOP for a look-alike crate at 18.4 s)."""
+(training seed 17: a true STOP for a person at 7.5 s; seed 7's crate at 18.4 s was driven
+until 2026-12-07, twice as long)."""
 import json
 
 import pytest
@@ -8,6 +9,7 @@ import pytest
 from appliance.campaign import Campaign, CampaignError, make_spec, run_drive
 from appliance.campaign_shadow import differences, paired
 
+SEED, MINUTES = 17, 0.17       # a person in the path: the drive's true STOP at 7.5 s
 EXCLUDE_ALL = ('[zones]\nexclusion = [{x_min_m = -5.0, x_max_m = 40.0, y_min_m = -20.0, '
                'y_max_m = 20.0}]\n')
 
@@ -18,11 +20,11 @@ def _stops(events):
 
 @pytest.fixture(scope="module")
 def own_pipelines_shadow():
-    """Greenhouse training seed 7, 21 simulated s; the shadow's perception differs from the
+    """Greenhouse training seed 17, 10 simulated s; the shadow's perception differs from the
     drive's in a table the greenhouse's RGB-D box does not use (the laser's range), so it runs
     its own pipelines on the drive's inputs. (A shadow sharing the drive's detections is the
     blind shadow below: two drives, not three, for the suite's time; 2026-12-07.)"""
-    spec = make_spec("greenhouse-coverage", 7, 0.35, 0.25)
+    spec = make_spec("greenhouse-coverage", SEED, MINUTES, 0.25)
     spec["shadow"] = {**spec["config"], "perception": {
         **spec["config"].get("perception", {}),
         "laser": {"max_range_m": 29.0}}}
@@ -36,7 +38,7 @@ def test_a_shadow_of_the_drives_own_config_agrees_on_every_cycle(own_pipelines_s
     sh = r["shadow"]
     assert sh["perception"] == "own"
     stops = _stops(run["events"])
-    assert len(stops) == 1 and stops[0][1] == "true" and 18.0 <= stops[0][0] <= 19.0  # crate
+    assert len(stops) == 1 and stops[0][1] == "true" and 7.0 <= stops[0][0] <= 8.0  # person
     assert _stops(sh["events"]) == stops
     # the pipelines with points in the stop zone at each onset, named alike on both sides
     assert [e["pipelines"] for e in sh["events"] if e["event"] == "stop"] == \
@@ -50,15 +52,15 @@ def test_a_shadow_of_the_drives_own_config_agrees_on_every_cycle(own_pipelines_s
 def test_a_shadow_never_drives_and_its_own_misses_are_its_own(own_pipelines_shadow, tmp_path):
     """A shadow that ignores everything (one exclusion box over the whole view; a zones key,
     so it shares the drive's detections): the drive is the same drive, stop for stop; the
-    shadow makes no obstacle STOP, so the crate's true stop is the drive's only. Through the
+    shadow makes no obstacle STOP, so the person's true stop is the drive's only. Through the
     campaign itself: the summary adds the shadow up."""
     f = tmp_path / "blind.toml"
     f.write_text(EXCLUDE_ALL)
     out = tmp_path / "camp"
-    s = Campaign("greenhouse-coverage", "7", 0.35, out, workers=1, stereo_scale=0.25,
+    s = Campaign("greenhouse-coverage", str(SEED), MINUTES, out, workers=1, stereo_scale=0.25,
                  progress=False, report=False, shadow_file=str(f)).run()
-    r = json.loads((out / "drives" / "greenhouse-coverage-7" / "result.json").read_text())
-    events = json.loads((out / "drives" / "greenhouse-coverage-7" / "events.json").read_text())
+    r = json.loads((out / "drives" / "greenhouse-coverage-17" / "result.json").read_text())
+    events = json.loads((out / "drives" / "greenhouse-coverage-17" / "events.json").read_text())
     events = events if isinstance(events, list) else events.get("events", events)
     assert _stops(events) == _stops(own_pipelines_shadow["events"])   # it never drove
     assert r["distance_m"] == own_pipelines_shadow["result"]["distance_m"]
@@ -70,7 +72,7 @@ def test_a_shadow_never_drives_and_its_own_misses_are_its_own(own_pipelines_shad
     assert s["shadow"]["true_stops_primary_only"] == 1
     assert sh["true_stops_primary_only_t_s"] == [t for t, k in _stops(events) if k == "true"]
     assert [(d["drive"], d["what"]) for d in s["shadow"]["differences"]] == [
-        ("greenhouse-coverage-7", "true stop only the drive's own config made")]
+        ("greenhouse-coverage-17", "true stop only the drive's own config made")]
     assert s["provenance"]["shadow_file"] == str(f)
     from appliance.campaign import format_summary
     assert "shadow (" in format_summary(s) and "only the shadow's 0" in format_summary(s)
