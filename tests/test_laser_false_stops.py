@@ -26,10 +26,11 @@ def test_the_first_laser_false_stop_of_training_seed_1_is_a_stubble_tuft(tmp_pat
     cfg.write_text('[perception]\npipelines = ["stereo-novelty", "laser"]\n'
                    '[perception.laser]\nmin_width_m = 0.0\n[grid]\nstop_recur_now = ["laser"]\n')
     pics = tmp_path / "pics"
-    # the camera at a quarter of 1280x1024 (the tool's --stereo-scale; 0.5 by default): the
-    # stop is the laser's, the camera's say on each return is what is checked
+    # the camera at an eighth of 1280x1024 (the tool's --stereo-scale; 0.5 by default): the
+    # stop is the laser's, the camera's say on each return is what is checked (at a quarter
+    # until 2026-12-07: the same stop and the same "unconfirmed", for 30 CPU-s, not 19)
     p = _run("stubble-coverage", "1", "--minutes", "0.45", "--config", str(cfg),
-             "--picture", str(pics), "--stereo-scale", "0.25")
+             "--picture", str(pics), "--stereo-scale", "0.125")
     assert p.returncode == 0, p.stderr[-2000:]
     lines = [json.loads(x) for x in p.stdout.splitlines() if x.startswith("{")]
     stops, summary = lines[:-1], lines[-1]
@@ -49,7 +50,7 @@ def test_the_first_laser_false_stop_of_training_seed_1_is_a_stubble_tuft(tmp_pat
     files = sorted(pics.glob("stubble-coverage-1-*.png"))
     assert len(files) == len(stops)
     img = cv2.imread(str(files[0]))
-    assert img is not None and img.shape[:2] == (256, 320)
+    assert img is not None and img.shape[:2] == (128, 160)
     # a return drawn red (unconfirmed) or green (confirmed): pure BGR dots on the field
     red = (img[..., 2] == 255) & (img[..., 1] == 0) & (img[..., 0] == 0)
     green = (img[..., 1] == 200) & (img[..., 0] == 0) & (img[..., 2] == 0)
