@@ -525,7 +525,7 @@ class AravisStereoCamera(Reconnecting, StereoCamera):
                                   illumination=self.illumination))
 
     def selftest(self) -> tuple[bool, str]:
-        h = self.health()
+        h = self.selftest_health()
         c = h.counters
         if h.ok:
             return True, (f"streaming {self.ids[0]} + {self.ids[1]}: {c.get('pairs', 0)} pairs, "

@@ -318,7 +318,7 @@ class FreenectDepthCamera(Reconnecting, DepthCamera):
                                  calib=self.calib))
 
     def selftest(self) -> tuple[bool, str]:
-        h = self.health()
+        h = self.selftest_health()
         c = h.counters
         if h.ok:
             return True, (f"{self.source}: streaming registered depth + colour, "

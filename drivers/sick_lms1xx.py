@@ -482,7 +482,7 @@ class SickLms1xxLaser(Reconnecting, SafetyLaser):
                                 ranges_m=r, geometry=g))
 
     def selftest(self) -> tuple[bool, str]:
-        h = self.health()
+        h = self.selftest_health()
         where = f"{self.host}:{self.port}"
         if h.ok:
             tel = self.last_telegram

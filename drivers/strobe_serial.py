@@ -474,7 +474,7 @@ class StrobeSerialTrigger(Reconnecting, StrobeTrigger):
         return DayNightSwitch(cams[0], self, self.night_below, self.day_above, self.probe_s)
 
     def selftest(self) -> tuple[bool, str]:
-        h = self.health()
+        h = self.selftest_health()
         st = self.last_status
         if h.ok and st:
             return True, (f"{self.port}: firing at {st['rate_hz']:g} Hz, strobe "
