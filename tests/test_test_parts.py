@@ -70,12 +70,17 @@ def test_wrong_arguments_say_how_to_call_it():
     assert r.returncode == 2 and "usage: test_parts.sh" in r.stderr
 
 
-def test_the_wall_clock_lock_makes_a_second_taker_wait_and_never_hang():
+def test_the_wall_clock_lock_makes_a_second_taker_wait_and_never_hang(tmp_path, monkeypatch):
     """tests/conftest.py hold_wallclock_lock: the soak and the fake GigE pair through the
     daemon never overlap. Held by one open file (the soak's process holds its copy), a second
-    taker waits; after its bound it goes on without it; once released it is taken at once."""
+    taker waits; after its bound it goes on without it; once released it is taken at once.
+    On a lock of its own (the environment names it, so the child process below takes the same
+    one): the suite's soak holds the checkout's lock for ~100 s, and this test, run while it
+    did, waited 5 s for it and failed."""
     import time
-    from tests.conftest import hold_wallclock_lock
+    from tests.conftest import hold_wallclock_lock, wallclock_lock_path
+    monkeypatch.setenv("FIELDGUARD_WALLCLOCK_LOCK", str(tmp_path / "wallclock.lock"))
+    assert wallclock_lock_path() == tmp_path / "wallclock.lock"
     first, waited = hold_wallclock_lock(max_wait_s=5.0)
     assert first is not None and waited < 5.0
     try:
