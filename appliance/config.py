@@ -647,6 +647,11 @@ def _cross_check(cfg: Config, file: str) -> None:
             raise ConfigError(f"names device {r!r}, which is not configured "
                               f"(configured: {', '.join(sorted(names))})", file=file,
                               key="gate.required")
+    sn = cfg.perception.extra.get("stereo-novelty")
+    if sn is not None and getattr(sn, "near_view", False) and sn.near_min_depth_m <= 0:
+        raise ConfigError("near_view needs the near search (near_min_depth_m > 0): without it "
+                          "the pipeline ranges nothing nearer than min_depth_m", file=file,
+                          key="perception.stereo-novelty.near_view")
     if not set(cfg.perception.optional) <= set(cfg.perception.pipelines):
         raise ConfigError("every optional pipeline must also be listed in pipelines",
                           file=file, key="perception.optional")

@@ -293,3 +293,38 @@ def test_the_tracks_hold_of_a_laser_only_track_follows_hold_blind_laser(laser_to
         assert [t.held for t in d.core.last.tracks if t.confirmed] == [True]
     else:
         assert after[-1] == "CLEAR" and not any(t.held for t in d.core.last.tracks)
+
+
+def test_with_near_view_the_stereo_view_reaches_as_near_as_the_near_search():
+    """[perception.stereo-novelty] near_view: the view hold_blind asks ends at
+    near_min_depth_m instead of min_depth_m, so a place the near search ranges (the sim's
+    camera: a point 0.5 m up 1.7 m ahead of the 2.2 m front, ~2.9 m along the axis) counts as
+    observed; without it, or without the near search, it does not. A near_view without the
+    near search is one clear config error."""
+    import dataclasses
+
+    from appliance.config import ConfigError
+    from appliance.perception import SensorInputs
+    from appliance.perception.stereo_novelty import StereoNoveltyConfig, StereoNoveltyPipeline
+    from drivers.sim import SimField
+    f = SimField("stubble-day", seed=1, sensors=("stereo",), stereo_scale=0.25)
+    s = f.render(0, 0)
+    probe = np.array([[2.2 + 1.7, 0.0, 0.5]])
+    seen = {}
+    for near, view in ((0.0, False), (1.6, False), (1.6, True)):
+        o = dataclasses.replace(StereoNoveltyConfig(), model_state="off", near_min_depth_m=near,
+                                near_view=view)
+        pipe = StereoNoveltyPipeline(o, background=False)
+        try:
+            d = pipe.process(SensorInputs(stamp_ns=s.stereo.stamp_ns, stereo=s.stereo,
+                                          vehicle=s.vehicle))
+        finally:
+            pipe.close()
+        seen[(near, view)] = (d.view.min_depth_m, bool(d.view.observes(probe)[0]))
+    assert seen == {(0.0, False): (3.0, False), (1.6, False): (3.0, False),
+                    (1.6, True): (1.6, True)}
+    with pytest.raises(ConfigError, match="near_view needs the near search"):
+        parse_config({"perception": {"stereo-novelty": {"near_view": True}}}, "<t>")
+    assert parse_config({"perception": {"stereo-novelty": {"near_view": True,
+                                                           "near_min_depth_m": 1.6}}},
+                        "<t>").perception.extra["stereo-novelty"].near_view

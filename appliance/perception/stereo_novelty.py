@@ -158,6 +158,12 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
                                      "z-depth (more disparities than num_disparities, only "
                                      "there), so what stands in the stop zone's near part is "
                                      "ranged; 0 = off (the search ends at min_depth_m)")
+    near_view: bool = _f(False, doc="near_min_depth_m: the camera's view (what [grid] "
+                                    "hold_blind asks: could the pipeline have put a point "
+                                    "there?) reaches down to near_min_depth_m instead of "
+                                    "min_depth_m, so a cell held out of sight that the near "
+                                    "search can range is looked at again, and let go if "
+                                    "nothing is found there; needs near_min_depth_m > 0")
     near_boot: bool = _f(False, doc="near_min_depth_m: the boot guard's full-frame pass "
                                     "searches that near too (measured with an earlier "
                                     "version: the empty field's false frames 5 -> 12 of 80, "
@@ -851,7 +857,9 @@ class StereoNoveltyPipeline(Pipeline):
         # what this camera saw where, for the laser's returns ([grid] laser_confirm_by): the
         # masks at the descriptor resolution, half a novelty cell of slack up and down
         view = CameraView(self._source_masks, Kd if kd > 1 else K, M, fr.calib.mount.position,
-                          o.max_range_m, slack_px=res.cell_px // 2, min_depth_m=o.min_depth_m,
+                          o.max_range_m, slack_px=res.cell_px // 2,
+                          min_depth_m=(o.near_min_depth_m if o.near_view and
+                                       o.near_min_depth_m > 0 else o.min_depth_m),
                           stereo_look=StereoLook(fr.left, fr.right, cam.fx, cam.fy, cam.cx,
                                                  cam.cy, fr.calib.baseline_m, M,
                                                  fr.calib.mount.position))
