@@ -158,6 +158,8 @@ class StereoNoveltyConfig(StereoConfig, CueOptions):
                                      "z-depth (more disparities than num_disparities, only "
                                      "there), so what stands in the stop zone's near part is "
                                      "ranged; 0 = off (the search ends at min_depth_m)")
+    # Off: closed loop it let go of the held phantoms and of a 0.48-m crate the hold had
+    # kept, one collision more (docs/tracking.md "The view as near as the near search")
     near_view: bool = _f(False, doc="near_min_depth_m: the camera's view (what [grid] "
                                     "hold_blind asks: could the pipeline have put a point "
                                     "there?) reaches down to near_min_depth_m instead of "
