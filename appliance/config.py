@@ -648,7 +648,7 @@ def _cross_check(cfg: Config, file: str) -> None:
                               f"(configured: {', '.join(sorted(names))})", file=file,
                               key="gate.required")
     sn = cfg.perception.extra.get("stereo-novelty")
-    if sn is not None and getattr(sn, "near_view", False) and sn.near_min_depth_m <= 0:
+    if sn is not None and sn.near_view and sn.near_min_depth_m <= 0:
         raise ConfigError("near_view needs the near search (near_min_depth_m > 0): without it "
                           "the pipeline ranges nothing nearer than min_depth_m", file=file,
                           key="perception.stereo-novelty.near_view")
