@@ -186,6 +186,13 @@ def test_poisson_interval_is_the_exact_one():
     assert poisson_ci95(1, 1.0) == [0.025, 5.572]
     assert poisson_ci95(10, 2.0) == [round(4.7954 / 2, 3), round(18.3904 / 2, 3)]
     assert poisson_ci95(3, 0.0) == [None, None]
+    # and the chi-square form it is computed without (scipy.stats, 2.6 CPU-s to import)
+    from scipy.stats import chi2
+    for k in range(0, 201):
+        for h in (0.4, 1.0, 7.3):
+            lo = 0.0 if k == 0 else chi2.ppf(0.025, 2 * k) / 2.0
+            hi = chi2.ppf(0.975, 2 * k + 2) / 2.0
+            assert poisson_ci95(k, h) == [round(lo / h, 3), round(hi / h, 3)], (k, h)
 
 
 def _result(kind, seed, sim_s, false, dets=()):
