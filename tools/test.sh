@@ -2,6 +2,13 @@
 # Sets up and runs the whole test suite. `.ci/run` calls exactly this.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+# Byte-code caches written, whatever the host says: with PYTHONDONTWRITEBYTECODE set (it is on
+# these hosts and in their CI) nothing the suite imports is ever cached, so each of its
+# hundreds of Python processes (CLI runs, daemons, campaigns, Ray's workers) compiled the
+# project and every package uv installed (uv compiles no byte-code at install) from source
+# again: ~1-1.5 CPU-s a process, ~0.15 of the suite's CPU (2026-12-07, docs/reliability.md).
+# Written once, beside each source (the checkout's are git-ignored), on first import.
+unset PYTHONDONTWRITEBYTECODE
 bash tools/hw_system_deps.sh   # Debian: aravis + fake GigE camera, socat, iproute2, build deps
 bash tools/setup.sh
 # The whole suite (no arguments): the simulator's renderer compiled once now (numba caches it
