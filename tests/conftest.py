@@ -96,7 +96,8 @@ SIMULATED = ("test_campaign_shadow.py", "test_laser_false_stops.py", "test_cue.p
              "test_sim_render.py", "test_sim.py", "test_stereo.py", "test_properties.py",
              "test_boot_safe.py", "test_decision.py", "test_test_parts.py",
              "test_low_cell_probe.py", "test_recall_cue.py", "test_slow_recur.py",
-             "test_boot_learnt.py", "test_look.py", "test_match_correlation.py")
+             "test_boot_learnt.py", "test_look.py", "test_match_correlation.py",
+             "test_colour_lut_builds.py")
 SOAK_MODULE = "test_soak.py"
 SOAK_TEST = (f"tests/{SOAK_MODULE}::"
              "test_short_soak_no_false_clear_stop_within_two_cycles_no_fd_growth")

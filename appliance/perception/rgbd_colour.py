@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import sys
 import threading
+import weakref
 from dataclasses import dataclass
 
 import cv2
@@ -80,6 +81,11 @@ def mahalanobis(z: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> np.ndarray:
 
 
 _LUT_CACHE: dict[tuple, np.ndarray] = {}
+# the exact tables being built beside the loop: key -> weak references to the classifiers
+# waiting for it (one build a key however many classifiers ask; a build nobody waits for any
+# more is dropped between two chunks). Guarded by _LUT_LOCK, as _LUT_CACHE is.
+_LUT_BUILDS: dict[tuple, list] = {}
+_LUT_LOCK = threading.Lock()
 
 
 class ColourClassifier:
@@ -110,28 +116,48 @@ class ColourClassifier:
         self._key = (space, self.lut_bits, self.threshold,
                      tuple(np.concatenate([m.ravel() for m in self._means]).tolist()),
                      tuple(np.concatenate([w.ravel() for w in self._w]).tolist()))
-        lut = _LUT_CACHE.get(self._key)
+        with _LUT_LOCK:
+            lut = _LUT_CACHE.get(self._key)
+            waiting = _LUT_BUILDS.get(self._key) if lut is None else None
+            if waiting is not None:
+                waiting.append(weakref.ref(self))    # being built already: wait for that one
+            elif lut is None and self.lut_bits == 8 and background:
+                _LUT_BUILDS[self._key] = [weakref.ref(self)]
         if lut is not None:
             self._set(lut)
+        elif waiting is not None:
+            pass
         elif self.lut_bits == 8 and background:
             # the exact table takes 1-3 s: build it beside the loop; until it is there the
-            # caller classifies per pixel (lut_ready() False), with the same result
-            threading.Thread(target=self._build_and_set, name="rgbd-colour-lut",
-                             daemon=True).start()
+            # caller classifies per pixel (lut_ready() False), with the same result. The
+            # thread holds a copy without the table, never this classifier: a classifier
+            # dropped before its table is done (a pipeline built and thrown away; the suite
+            # made dozens, and their orphaned builds took ~1-3 CPU-s each from whatever ran
+            # next) stops the build (2026-12-07)
+            threading.Thread(target=_build_beside, args=(self._bare(), self._key),
+                             name="rgbd-colour-lut", daemon=True).start()
         else:
-            self._build_and_set()
+            self._set(self._store(self._build_lut()))
 
-    def _build_and_set(self) -> None:
-        lut = self._build_lut()
+    def _bare(self) -> "ColourClassifier":
+        """A copy that classifies as this one does, with no table, no waiters, no event."""
+        c = object.__new__(ColourClassifier)
+        c.threshold, c._means, c._w = self.threshold, self._means, self._w
+        c.space, c.lut_bits, c._key, c._lut = self.space, self.lut_bits, self._key, None
+        return c
+
+    def _store(self, lut: np.ndarray) -> np.ndarray:
+        """The built table in its final layout, put in the process's cache."""
         if self.lut_bits == 8:
             # the exact table indexed R<<16 | G<<8 | B: a BGRA pixel read as one little-endian
             # 32-bit word is that index plus the alpha byte (classify_image: one conversion and
             # one mask instead of three strided channel reads, ~0.5 ms less a 640x480 frame)
             lut = np.ascontiguousarray(lut.reshape(256, 256, 256).transpose(2, 1, 0)).ravel()
-        if len(_LUT_CACHE) > 8:
-            _LUT_CACHE.clear()
-        _LUT_CACHE[self._key] = lut
-        self._set(lut)
+        with _LUT_LOCK:
+            if len(_LUT_CACHE) > 8:
+                _LUT_CACHE.clear()
+            _LUT_CACHE[self._key] = lut
+        return lut
 
     def _set(self, lut: np.ndarray) -> None:
         self._lut = lut
@@ -144,7 +170,9 @@ class ColourClassifier:
         """Block until the lookup table is built (tools, tests); True when it is."""
         return self._ready.wait(timeout) if self.lut_bits else False
 
-    def _build_lut(self) -> np.ndarray:
+    def _build_lut(self, wanted=None) -> np.ndarray | None:
+        """The table (n**3 classes, blue-major); None when ``wanted()`` said no between two
+        chunks (nobody waits for it any more)."""
         bits = self.lut_bits
         n = 1 << bits
         step = 256 // n
@@ -154,6 +182,8 @@ class ColourClassifier:
         gr, rr = gr.ravel(), rr.ravel()
         per = max(1, (1 << 18) // (n * n))          # blue planes per chunk: bounded memory
         for b0 in range(0, n, per):
+            if wanted is not None and not wanted():
+                return None
             bs = centre[b0:b0 + per]
             bgr = np.stack([np.repeat(bs, n * n), np.tile(gr, len(bs)), np.tile(rr, len(bs))],
                            axis=1)
@@ -222,6 +252,29 @@ class ColourClassifier:
         idx = np.argmin(d, axis=1)
         best = d[np.arange(d.shape[0]), idx]
         return np.where(best < self.threshold, idx, UNDEFINED).astype(np.int16)
+
+
+def _build_beside(proto: ColourClassifier, key: tuple) -> None:
+    """The background build of one exact table (a thread): handed to every classifier still
+    waiting for it when done; dropped, and forgotten, as soon as none is (then a classifier
+    made later starts its own)."""
+    def wanted() -> bool:
+        with _LUT_LOCK:
+            refs = _LUT_BUILDS.get(key, [])
+            refs[:] = [r for r in refs if r() is not None]
+            if not refs:
+                _LUT_BUILDS.pop(key, None)       # atomically with the answer: no waiter lost
+            return bool(refs)
+    lut = proto._build_lut(wanted)
+    if lut is None:
+        return
+    lut = proto._store(lut)
+    with _LUT_LOCK:
+        refs = _LUT_BUILDS.pop(key, [])
+    for r in refs:
+        c = r()
+        if c is not None:
+            c._set(lut)
 
 
 # ---------------------------------------------------------------------------------------------
