@@ -20,7 +20,10 @@ ROOT = Path(__file__).resolve().parents[1]
 # the paper's laser stops at the first return in the stop zone, a stubble tuft's top included;
 # today's default waits for a second cycle (a SLOW "unconfirmed" first): on training seeds 1
 # and 2 of the coverage field the two boxes part at a tuft 21.8-23.5 s into the drive (24-s
-# drives: 27 s until 2026-12-07, every check the same, 35 CPU-s of the suite instead of 41)
+# drives: 27 s until 2026-12-07, every check the same, 35 CPU-s of the suite instead of 41).
+# Seed 1 alone since 2026-12-08 (the suite over its 10 minutes; ~18 CPU-s less): one pair of
+# drives shows the first difference and its judgement; the sign test's arithmetic and the
+# pairing of many drives are checked below without driving
 PAPER = ('[perception]\npipelines = ["laser"]\n[perception.laser]\nmin_width_m = 0.0\n'
          '[grid]\nstop_recur_now = ["laser"]\n')
 DEFAULT = '[perception]\npipelines = ["laser"]\n'
@@ -37,7 +40,7 @@ def two(tmp_path_factory):
         cfg.write_text(text)
         procs[name] = subprocess.Popen(
             [sys.executable, "-m", "appliance.cli", "campaign", "--scene", "stubble-coverage",
-             "--seeds", "1-2", "--minutes", "0.4", "--out", str(base / name), "--workers", "1",
+             "--seeds", "1", "--minutes", "0.4", "--out", str(base / name), "--workers", "1",
              "--config", str(cfg), "--stereo-scale", "0.25", "--no-report"],
             cwd=str(ROOT), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         out[name] = base / name
@@ -49,8 +52,7 @@ def two(tmp_path_factory):
 
 def test_two_laser_configurations_part_at_a_tuft(two):
     c = compare(two["paper"], two["default"])
-    assert [(d["kind"], d["seed"]) for d in c["drives"]] == [("stubble-coverage", 1),
-                                                              ("stubble-coverage", 2)]
+    assert [(d["kind"], d["seed"]) for d in c["drives"]] == [("stubble-coverage", 1)]
     assert not c["acceptance_seeds"] and c["only_in_a"] == c["only_in_b"] == []
     for d in c["drives"]:
         f = d["first_difference"]
@@ -62,7 +64,7 @@ def test_two_laser_configurations_part_at_a_tuft(two):
         assert 20.0 < f["t_s"] < 27.0
         assert d["a"]["false_stops"] >= 1
     p = c["paired"]["first_difference"]
-    assert p["b_better"] == 2 and p["b_worse"] == 0 and p["sign_test_p"] == 0.5
+    assert p["b_better"] == 1 and p["b_worse"] == 0 and p["sign_test_p"] == 1.0
     # totals come from the summaries, drive by drive
     tot = c["totals"]
     for side, name in (("a", "paper"), ("b", "default")):
@@ -72,15 +74,40 @@ def test_two_laser_configurations_part_at_a_tuft(two):
     # a campaign against itself never parts
     same = compare(two["paper"], two["paper"])
     assert all(d["first_difference"] is None for d in same["drives"])
-    assert same["paired"]["false_stops"]["same"] == 2
+    assert same["paired"]["false_stops"]["same"] == 1
+
+
+def test_many_drives_pair_by_kind_and_seed_in_order(two, tmp_path):
+    """The one driven pair copied as three seeds (5, 3, 4, listed out of order) in both
+    campaigns: three drives paired in order, three first differences B better, the sign test
+    over them; no drive is driven again."""
+    import shutil
+    dirs = {}
+    for name in ("paper", "default"):
+        d = dirs[name] = tmp_path / name
+        shutil.copytree(two[name], d)
+        s = json.loads((d / "summary.json").read_text())
+        (one,) = s["per_drive"]
+        s["per_drive"] = []
+        for seed in (5, 3, 4):
+            shutil.copytree(d / "drives" / f"stubble-coverage-{one['seed']}",
+                            d / "drives" / f"stubble-coverage-{seed}")
+            s["per_drive"].append(dict(one, seed=seed))
+        (d / "summary.json").write_text(json.dumps(s))
+    c = compare(dirs["paper"], dirs["default"])
+    assert [(d["kind"], d["seed"]) for d in c["drives"]] == [("stubble-coverage", k)
+                                                              for k in (3, 4, 5)]
+    p = c["paired"]["first_difference"]
+    assert p["b_better"] == 3 and p["b_worse"] == 0 and p["sign_test_p"] == 0.25
+    assert c["paired"]["false_stops"]["b_fewer"] == 3
 
 
 def test_the_cli_prints_the_table_and_json(two, capsys):
     assert main(["campaign-compare", str(two["paper"]), str(two["default"])]) == 0
     text = capsys.readouterr().out
-    assert "stubble-coverage-1" in text and "first differences: B better in 2, worse in 0, early" in text
+    assert "stubble-coverage-1" in text and "first differences: B better in 1, worse in 0, early" in text
     assert main(["campaign-compare", str(two["paper"]), str(two["default"]), "--json"]) == 0
-    assert json.loads(capsys.readouterr().out)["paired"]["first_difference"]["b_better"] == 2
+    assert json.loads(capsys.readouterr().out)["paired"]["first_difference"]["b_better"] == 1
 
 
 def test_the_picture(two, tmp_path, capsys):
@@ -91,10 +118,10 @@ def test_the_picture(two, tmp_path, capsys):
                  "--png", str(png)]) == 0
     img = cv2.imread(str(png))
     assert img is not None and img.shape[1] == 1000
-    # both drives' first differences were B better: two green marks, no red one
+    # the drive's first difference was B better: a green mark, no red one
     green = (img[:, :, 1] > 140) & (img[:, :, 0] < 40) & (img[:, :, 2] < 40)
     red = (img[:, :, 2] > 200) & (img[:, :, 0] < 40) & (img[:, :, 1] < 40)
-    assert green.sum() > 2 * 40 and red.sum() == 0
+    assert green.sum() > 40 and red.sum() == 0
     assert main(["campaign-compare", str(two["paper"]), str(two["default"]),
                  "--png", str(tmp_path / "no" / "such" / "dir" / "x.png")]) == 2
     assert "cannot write the picture" in capsys.readouterr().err
