@@ -15,12 +15,14 @@ from appliance.perception.rgbd_colour import ColourClassifier
 
 @pytest.fixture()
 def gated(monkeypatch):
-    """The background build held at its start until the test opens the gate."""
+    """The background build (the one given ``wanted``) held at its start until the test opens
+    the gate; a build in the caller's thread is not held."""
     gate = threading.Event()
     orig = ColourClassifier._build_lut
 
     def build(self, wanted=None):
-        assert gate.wait(30.0), "the test never opened the gate"
+        if wanted is not None:
+            assert gate.wait(30.0), "the test never opened the gate"
         return orig(self, wanted)
     monkeypatch.setattr(ColourClassifier, "_build_lut", build)
     yield gate
@@ -77,3 +79,12 @@ def test_a_build_goes_on_while_one_of_its_waiters_lives(gated):
     gc.collect()
     gated.set()
     assert b.wait_lut(60.0) and b.lut_ready()
+
+
+def test_a_classifier_asked_to_build_now_does_not_wait_for_one_in_flight(gated):
+    a = ColourClassifier(_mixtures(), 3.3104, "lab", 8)                   # held at the gate
+    b = ColourClassifier(_mixtures(), 3.3104, "lab", 8, background=False)  # built here
+    assert b.lut_ready() and not a.lut_ready()
+    gated.set()
+    assert a.wait_lut(60.0)
+    assert np.array_equal(a._lut, b._lut)

@@ -4,10 +4,12 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 # Byte-code caches written, whatever the host says: with PYTHONDONTWRITEBYTECODE set (it is on
 # these hosts and in their CI) nothing the suite imports is ever cached, so each of its
-# hundreds of Python processes (CLI runs, daemons, campaigns, Ray's workers) compiled the
-# project and every package uv installed (uv compiles no byte-code at install) from source
-# again: ~1-1.5 CPU-s a process, ~0.15 of the suite's CPU (2026-12-07, docs/reliability.md).
-# Written once, beside each source (the checkout's are git-ignored), on first import.
+# Python processes (well over a hundred: CLI runs, daemons, campaigns, Ray's workers, the
+# soak's box) compiled the project and every package uv installed (uv compiles no byte-code
+# at install) from source again, ~1.4 CPU-s for a campaign's; with the campaign's Poisson
+# interval off scipy.stats beside it the suite's CPU fell by a quarter (2026-12-07,
+# docs/reliability.md). Written once, beside each source (the checkout's are git-ignored),
+# on first import.
 unset PYTHONDONTWRITEBYTECODE
 bash tools/hw_system_deps.sh   # Debian: aravis + fake GigE camera, socat, iproute2, build deps
 bash tools/setup.sh

@@ -118,7 +118,7 @@ class ColourClassifier:
                      tuple(np.concatenate([w.ravel() for w in self._w]).tolist()))
         with _LUT_LOCK:
             lut = _LUT_CACHE.get(self._key)
-            waiting = _LUT_BUILDS.get(self._key) if lut is None else None
+            waiting = _LUT_BUILDS.get(self._key) if lut is None and background else None
             if waiting is not None:
                 waiting.append(weakref.ref(self))    # being built already: wait for that one
             elif lut is None and self.lut_bits == 8 and background:
@@ -126,7 +126,7 @@ class ColourClassifier:
         if lut is not None:
             self._set(lut)
         elif waiting is not None:
-            pass
+            return                                   # that build hands this one the table
         elif self.lut_bits == 8 and background:
             # the exact table takes 1-3 s: build it beside the loop; until it is there the
             # caller classifies per pixel (lut_ready() False), with the same result. The
