@@ -50,8 +50,16 @@ if [ ! -x "$OPT/venv/bin/python" ]; then
   "$PY" -m venv "$OPT/venv"
 fi
 say "installing fieldguard from $SRC"
+# built from a private copy of what the package is made of, never in the source tree: pip
+# builds a tree in place (build/ and fieldguard.egg-info/ beside the sources), so every
+# install left them in the checkout, and two installs from one tree at once (the suite's two
+# install tests, 2026-12-08) tore down each other's build directory mid-build
+STAGE=$(mktemp -d)
+trap 'rm -rf "$STAGE"' EXIT
+tar -C "$SRC" --exclude=__pycache__ -cf - pyproject.toml README.md appliance hal drivers \
+  | tar -C "$STAGE" -xf -
 # shellcheck disable=SC2086
-"$OPT/venv/bin/python" -m pip install --quiet $PIP_ARGS "$SRC"
+"$OPT/venv/bin/python" -m pip install --quiet $PIP_ARGS "$STAGE"
 # the command on PATH: /usr/local/bin/fieldguard -> the venv's (a path inside the target
 # system, also with --root)
 mkdir -p "$ROOT/usr/local/bin"

@@ -18,18 +18,38 @@ def need(tool):
         missing_tool(f"{tool} not installed")
 
 
+def build_marks() -> dict[str, int]:
+    """Every path (and its mtime) under the source tree's build/ and *.egg-info/: what a build
+    in the tree writes."""
+    marks = {}
+    for top in ROOT.iterdir():
+        if top.name == "build" or top.name.endswith(".egg-info"):
+            for p in [top, *top.rglob("*")]:
+                marks[str(p.relative_to(ROOT))] = p.lstat().st_mtime_ns
+    return marks
+
+
 @pytest.fixture(scope="module")
 def installed(tmp_path_factory):
     need("systemctl")
     root = tmp_path_factory.mktemp("root")
+    before = build_marks()
     r = subprocess.run(["bash", str(ROOT / "deploy" / "install.sh"), "--root", str(root),
                         "--pip-args", "--no-deps"], capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stdout + r.stderr
-    return root, r.stdout
+    return root, r.stdout, before, build_marks()
+
+
+def test_install_builds_outside_the_source_tree(installed):
+    """A build in the tree (pip's default) shares build/ with every other install from it:
+    two at once (tests/test_install.py beside this module) tore each other's build down
+    (CI, 2026-12-08: "could not create 'build/bdist.linux-x86_64/wheel/...'")."""
+    _, _, before, after = installed
+    assert after == before
 
 
 def test_install_lays_out_the_box(installed):
-    root, out = installed
+    root, out = installed[:2]
     assert (root / "opt/fieldguard/venv/bin/fieldguard").exists()
     assert (root / "etc/fieldguard/fieldguard.toml").read_text() == \
         (ROOT / "deploy/fieldguard.toml").read_text()
@@ -44,7 +64,7 @@ def test_install_lays_out_the_box(installed):
 
 def test_unit_verifies_clean_in_the_installed_root(installed, tmp_path):
     need("systemd-analyze")
-    root, _ = installed
+    root = installed[0]
     # verify the installed unit with its paths pointing into the throwaway root, so that
     # systemd-analyze also checks that ExecStart/ExecStartPre exist as installed
     unit = tmp_path / "fieldguard.service"
@@ -74,7 +94,7 @@ def test_unit_is_what_the_daemon_expects():
 
 
 def test_upgrade_never_overwrites_the_config_and_uninstall_keeps_it(installed, tmp_path):
-    root, _ = installed
+    root = installed[0]
     cfg = root / "etc/fieldguard/fieldguard.toml"
     cfg.write_text(cfg.read_text().replace("hold_off_s = 1.0", "hold_off_s = 2.0"))
     r = subprocess.run(["bash", str(ROOT / "deploy" / "install.sh"), "--root", str(root),
