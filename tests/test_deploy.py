@@ -4,6 +4,7 @@ import re
 import shutil
 import subprocess
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -37,19 +38,19 @@ def installed(tmp_path_factory):
     r = subprocess.run(["bash", str(ROOT / "deploy" / "install.sh"), "--root", str(root),
                         "--pip-args", "--no-deps"], capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stdout + r.stderr
-    return root, r.stdout, before, build_marks()
+    return SimpleNamespace(root=root, out=r.stdout, marks_before=before,
+                           marks_after=build_marks())
 
 
 def test_install_builds_outside_the_source_tree(installed):
     """A build in the tree (pip's default) shares build/ with every other install from it:
     two at once (tests/test_install.py beside this module) tore each other's build down
     (CI, 2026-12-08: "could not create 'build/bdist.linux-x86_64/wheel/...'")."""
-    _, _, before, after = installed
-    assert after == before
+    assert installed.marks_after == installed.marks_before
 
 
 def test_install_lays_out_the_box(installed):
-    root, out = installed[:2]
+    root, out = installed.root, installed.out
     assert (root / "opt/fieldguard/venv/bin/fieldguard").exists()
     assert (root / "etc/fieldguard/fieldguard.toml").read_text() == \
         (ROOT / "deploy/fieldguard.toml").read_text()
@@ -64,7 +65,7 @@ def test_install_lays_out_the_box(installed):
 
 def test_unit_verifies_clean_in_the_installed_root(installed, tmp_path):
     need("systemd-analyze")
-    root = installed[0]
+    root = installed.root
     # verify the installed unit with its paths pointing into the throwaway root, so that
     # systemd-analyze also checks that ExecStart/ExecStartPre exist as installed
     unit = tmp_path / "fieldguard.service"
@@ -94,7 +95,7 @@ def test_unit_is_what_the_daemon_expects():
 
 
 def test_upgrade_never_overwrites_the_config_and_uninstall_keeps_it(installed, tmp_path):
-    root = installed[0]
+    root = installed.root
     cfg = root / "etc/fieldguard/fieldguard.toml"
     cfg.write_text(cfg.read_text().replace("hold_off_s = 1.0", "hold_off_s = 2.0"))
     r = subprocess.run(["bash", str(ROOT / "deploy" / "install.sh"), "--root", str(root),
