@@ -84,6 +84,8 @@ WALLSTEP_SOURCE = ROOT / "tools/soak_assets/wallstep.c"
 FAULT_HOLD_S = 0.3
 HEAP_EVERY_S = 900.0   # --heap: a tracemalloc snapshot of the daemon this often after warm-up
 WARMUP_S = 120.0       # RSS and fds are judged from this long after the status socket answered
+JUDGE_S = 60.0         # ... in a process that ran at least this long after that (fds: the median
+                       # of its first half of this against that of its last half)
 # kind -> weight in the schedule (restarts rarer: each one starts a new process to watch)
 FAULTS = {"sick_silent": 3, "sick_late": 3, "sick_garbage": 3, "sick_truncate": 2,
           "sick_corrupt": 2, "sick_unplug": 2, "strobe_silent": 2, "strobe_garbage": 2,
@@ -447,6 +449,7 @@ class Soak:
         self.load: list[float] = []
         self.only: list[str] = []
         self.warmup_s = WARMUP_S
+        self.judge_s = JUDGE_S
         self.without: set[str] = set()
         self.heap_dumps: list[dict] = []
 
@@ -1062,21 +1065,22 @@ class Soak:
         for inc, ss in segs.items():
             # warm-up: WARMUP_S after the status socket first answered (imports alone take a
             # minute on a loaded host; the incident ring and the recorder's bounded queue fill
-            # up to their high-water mark in the first incidents); a process needs 60 s after
-            # that to be judged
+            # up to their high-water mark in the first incidents); a process needs judge_s (60 s
+            # by default) after that to be judged
             up = [s["t"] for s in ss if s.get("state")]
             if not up:
                 continue
             warm = [s for s in ss if s["t"] >= up[0] + self.warmup_s and "fds" in s]
-            if len(warm) < 5 or warm[-1]["t"] - warm[0]["t"] < 60.0:
+            if len(warm) < 5 or warm[-1]["t"] - warm[0]["t"] < self.judge_s:
                 continue
             # a leak raises the usual count; a file or socket open for a moment (an incident
             # being written, a status request) or closed for a moment (a device reconnecting,
-            # the Kinect's helper restarting) is no growth: the median count in the first 30 s
-            # after warm-up against the median in the last 30 s (the lowest, used before, read
-            # a reconnect's dip early in the window as growth)
-            head = sorted(x["fds"] for x in warm if x["t"] <= warm[0]["t"] + 30.0)
-            tail = sorted(x["fds"] for x in warm if x["t"] >= warm[-1]["t"] - 30.0)
+            # the Kinect's helper restarting) is no growth: the median count in the first half
+            # of judge_s after warm-up against the median in the last half (the lowest, used
+            # before, read a reconnect's dip early in the window as growth)
+            half = self.judge_s / 2
+            head = sorted(x["fds"] for x in warm if x["t"] <= warm[0]["t"] + half)
+            tail = sorted(x["fds"] for x in warm if x["t"] >= warm[-1]["t"] - half)
             fd_growth = max(fd_growth, tail[len(tail) // 2] - head[len(head) // 2])
             judged.append(warm)
             if best is None or warm[-1]["t"] - warm[0]["t"] > best[-1]["t"] - best[0]["t"]:
@@ -1188,6 +1192,7 @@ class Soak:
             "py_blocks_slope_per_h": split.get("py_blocks") if judged else None,
             "malloc_trim_ms_max": max((x["trim_ms_max"] for x in self.samples
                                        if "trim_ms_max" in x), default=None),
+            "judge_window_s": self.judge_s,
             "rss_judged_over_s": round(sum(seg[-1]["t"] - seg[0]["t"] for seg in judged)),
             "rss_processes_judged": len(judged),
             "rss_slope_longest_process_mb_per_h": None if longest is None else round(longest, 3),
@@ -1361,6 +1366,7 @@ def analyse_again(a) -> int:
         die(f"{out / 'events.json'}: {exc}")
     soak = Soak(out, a.minutes, a.seed, a.interval)
     soak.warmup_s = a.warmup
+    soak.judge_s = a.judge_window
     soak.heap_dumps = ev.get("heap_snapshots", [])
     soak.t0 = ev["t0"]
     soak.box.starts = [t + soak.t0 for t in ev["starts"]]
@@ -1401,6 +1407,10 @@ def main(argv=None) -> int:
     ap.add_argument("--warmup", type=float, default=WARMUP_S,
                     help="seconds after the daemon's status socket answers before its RSS and "
                          f"fds are judged (default {WARMUP_S:g})")
+    ap.add_argument("--judge-window", type=float, default=JUDGE_S, metavar="S",
+                    help="a daemon process is judged (RSS, fds) only if it ran S seconds after "
+                         "its warm-up; its fds: the median count of the first S/2 against the "
+                         f"last S/2 (default {JUDGE_S:g})")
     ap.add_argument("--without", default="",
                     help="comma-separated parts to leave out: gige (the fake GigE pair), kinect "
                          "(fakenect), wallstep (the wall-clock step preload)")
@@ -1408,6 +1418,8 @@ def main(argv=None) -> int:
     ap.add_argument("--analyse", action="store_true",
                     help="judge the events.json already in --out again (no run)")
     a = ap.parse_args(argv)
+    if a.judge_window < 10:
+        die("--judge-window must be at least 10 s (two halves of a few samples each)")
     if a.analyse:
         return analyse_again(a)
     if a.minutes <= 0 or a.interval <= 0:
@@ -1452,6 +1464,7 @@ def main(argv=None) -> int:
     soak = Soak(out, a.minutes, a.seed, a.interval)
     soak.only = only
     soak.warmup_s = a.warmup
+    soak.judge_s = a.judge_window
     soak.box.heap_frames = a.heap
     soak.without = {x for x in a.without.split(",") if x}
     try:
