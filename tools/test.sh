@@ -40,7 +40,7 @@ fi
 # The whole suite, in two parts at once (tests/conftest.py says which module is which):
 #  - the modules that run in simulated time (lock-step daemons, pace 0: nothing they check
 #    depends on how fast they run), the soak's test among them, on pytest-xdist's workers (one
-#    per core and one more: the soak's test spends its ~95 s waiting for the soak; up to 5), at
+#    per core and one more: the soak's test spends its ~70 s waiting for the soak; up to 5), at
 #    the lowest CPU priority the kernel has (SCHED_IDLE: they get a core only when nothing else
 #    wants it, and a waking process of normal priority takes it from them at once);
 #  - beside them, every module with a wall-clock deadline, one test at a time, at normal
@@ -48,9 +48,12 @@ fi
 #    for the first part alone, then 281 s for this one).
 # The soak puts itself back to normal priority (tools/soak.py; it runs at nice -10 in a session
 # of its own). The simulated part's output is printed when both have ended (tools/test_parts.sh).
+t_wait=$SECONDS
 if ! wait "$warm_pid"; then
   echo "test: compiling the renderer beforehand failed (the workers will): $(tail -3 "$warm/log")" >&2
 fi
+# where the set-up's time goes (the renderer's compile, or the installs beside it)
+echo "test: the installs were done after ${t_wait} s; the renderer's compile $(( SECONDS - t_wait )) s later" >&2
 rm -rf "$warm"
 workers=$(( $(nproc 2>/dev/null || echo 1) + 1 ))
 [ "$workers" -gt 5 ] && workers=5
