@@ -2,6 +2,7 @@
 `fieldguard: error: ...` line naming what and what to do, exit 2; anything unexpected is
 `fieldguard: error: internal error: ...` with the traceback in a log file, exit 2. And
 `config check` refuses what `run` refuses (issue #16)."""
+import json
 import os
 import re
 import signal
@@ -21,6 +22,21 @@ def fg(*args, timeout=120, cwd=None):
     return r.returncode, r.stdout, r.stderr
 
 
+def fg_in(capsys, *args):
+    """`fg` in this process, for a message and exit code that do not depend on being a process
+    of its own (no daemon, no signal, no socket to another process): `main` returns what the
+    process would exit with; an argparse error is its SystemExit code. (tests/conftest.py puts
+    back the root logger `main` points at the captured stderr.)"""
+    from appliance.cli import main
+    capsys.readouterr()                            # only this call's output
+    try:
+        rc = main([*map(str, args)])
+    except SystemExit as exc:
+        rc = exc.code
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
 def assert_user_error(rc, out, err, *needles):
     assert "Traceback" not in out + err, err
     assert rc == 2, (rc, out, err)
@@ -32,122 +48,79 @@ def assert_user_error(rc, out, err, *needles):
 
 
 # ---- run and sim --------------------------------------------------------------------------
-def test_run_sim_unknown_scene():
-    assert_user_error(*fg("run", "--sim", "nosuchscene", "--duration", "0.1"),
+def test_run_sim_unknown_scene(capsys):
+    assert_user_error(*fg_in(capsys, "run", "--sim", "nosuchscene", "--duration", "0.1"),
                       "unknown scene 'nosuchscene'", "stubble-day")
 
 
-def test_run_sim_misspelt_scene_says_did_you_mean():
-    assert_user_error(*fg("run", "--sim", "stuble-day", "--duration", "0.1"),
+def test_run_sim_misspelt_scene_says_did_you_mean(capsys):
+    assert_user_error(*fg_in(capsys, "run", "--sim", "stuble-day", "--duration", "0.1"),
                       "did you mean 'stubble-day'?")
 
 
-def test_sim_unknown_scene(tmp_path):
-    assert_user_error(*fg("sim", "nosuchscene", "--out", tmp_path / "r"),
+def test_sim_unknown_scene(tmp_path, capsys):
+    assert_user_error(*fg_in(capsys, "sim", "nosuchscene", "--out", tmp_path / "r"),
                       "unknown scene 'nosuchscene'")
     assert not (tmp_path / "r").exists()
 
 
-def test_sim_zero_frames(tmp_path):
-    assert_user_error(*fg("sim", "stubble-day", "--frames", "0", "--out", tmp_path / "r"),
-                      "--frames must be at least 1")
+def test_sim_zero_frames(tmp_path, capsys):
+    assert_user_error(*fg_in(capsys, "sim", "stubble-day", "--frames", "0",
+                             "--out", tmp_path / "r"), "--frames must be at least 1")
 
 
-def test_sim_unknown_sensor(tmp_path):
-    assert_user_error(*fg("sim", "stubble-day", "--frames", "1", "--sensors", "lidar",
+def test_sim_unknown_sensor(tmp_path, capsys):
+    assert_user_error(*fg_in(capsys, "sim", "stubble-day", "--frames", "1", "--sensors", "lidar",
                           "--out", tmp_path / "r"), "'lidar'", "stereo, laser, rgbd")
 
 
-def test_sim_unwritable_out():
-    assert_user_error(*fg("sim", "stubble-day", "--frames", "1", "--sensors", "laser",
+def test_sim_unwritable_out(capsys):
+    assert_user_error(*fg_in(capsys, "sim", "stubble-day", "--frames", "1", "--sensors", "laser",
                           "--out", "/proc/x"), "cannot write the run folder /proc/x",
                       "--out")
 
 
-# ---- a running daemon: a second one, snapshot -o DIR ---------------------------------------
-@pytest.fixture(scope="module")
-def daemon(tmp_path_factory):
-    d = tmp_path_factory.mktemp("d")
-    sock = d / "status.sock"
-    log = open(d / "daemon.log", "w")
-    p = subprocess.Popen([sys.executable, "-m", "appliance.cli", "run", "--sim",
-                          "--socket", str(sock)], cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
-    try:
-        deadline = time.monotonic() + 300          # a loaded host starts slowly
-        while time.monotonic() < deadline:
-            if sock.is_socket():
-                rc, out, _ = fg("status", "--json", "--socket", sock)
-                if rc in (0, 1) and '"cycles": 0' not in out:
-                    break
-            assert p.poll() is None, (d / "daemon.log").read_text()
-            time.sleep(0.3)
-        else:
-            pytest.fail("daemon did not come up: " + (d / "daemon.log").read_text())
-        yield sock
-    finally:
-        p.send_signal(signal.SIGTERM)
-        p.wait(timeout=120)
-        log.close()
-
-
-def test_second_daemon_on_the_same_socket_says_so(daemon):
-    assert_user_error(*fg("run", "--sim", "--socket", daemon, "--duration", "1"),
-                      f"another fieldguard daemon is answering on {daemon}", "--socket")
-    # and the first one still answers: the refused daemon did not remove its socket
-    rc, out, err = fg("status", "--socket", daemon)
-    assert rc in (0, 1) and "state" in out, err
-
-
-def test_snapshot_into_a_folder(daemon, tmp_path):
-    rc, out, err = fg("snapshot", "-o", tmp_path, "--socket", daemon)
-    assert rc == 0 and "Traceback" not in err, err
-    pngs = list(tmp_path.glob("fieldguard-snapshot-*.png"))
-    assert len(pngs) == 1 and pngs[0].read_bytes()[:4] == b"\x89PNG"
-
-
-def test_snapshot_unwritable(daemon):
-    assert_user_error(*fg("snapshot", "-o", "/proc/nope/x.png", "--socket", daemon),
-                      "cannot write /proc/nope/x.png")
-
-
-def test_no_daemon_is_a_user_error(tmp_path):
+# ---- no daemon answering ------------------------------------------------------------------
+def test_no_daemon_is_a_user_error(tmp_path, capsys):
     for cmd in (("status",), ("snapshot", "-o", tmp_path / "x.png"),
                 ("record", "--seconds", "1", "--out", tmp_path / "rec")):
-        assert_user_error(*fg(*cmd, "--socket", tmp_path / "none.sock"),
+        assert_user_error(*fg_in(capsys, *cmd, "--socket", tmp_path / "none.sock"),
                           "no fieldguard daemon is answering", "--socket")
 
 
 # ---- config check runs every check run runs -----------------------------------------------
-def test_config_check_catches_a_misspelt_scene(tmp_path):
+def test_config_check_catches_a_misspelt_scene(tmp_path, capsys):
     f = tmp_path / "c.toml"
     f.write_text('[sim]\nscene = "stuble-day"\n')
-    assert_user_error(*fg("config", "check", "--sim", f), "[sim.scene]",
+    assert_user_error(*fg_in(capsys, "config", "check", "--sim", f), "[sim.scene]",
                       "did you mean 'stubble-day'?")
-    assert_user_error(*fg("run", "--sim", "--config", f, "--duration", "0.1"),
+    assert_user_error(*fg_in(capsys, "run", "--sim", "--config", f, "--duration", "0.1"),
                       "[sim.scene]", "did you mean 'stubble-day'?")
 
 
-def test_empty_config_check_and_run_agree(tmp_path):
+def test_empty_config_check_and_run_agree(tmp_path, capsys):
     """An empty file is the built-in defaults: no devices. `run --config` refuses it, so
     `config check` (what the unit runs before `run --config`) refuses it too; with --sim both
     accept it."""
     f = tmp_path / "empty.toml"
     f.write_text("")
-    assert_user_error(*fg("config", "check", f), "no [devices] configured", "--sim")
-    assert_user_error(*fg("run", "--config", f, "--duration", "0.1"), "no [devices] configured")
-    rc, out, err = fg("config", "check", "--sim", f)
+    assert_user_error(*fg_in(capsys, "config", "check", f), "no [devices] configured", "--sim")
+    assert_user_error(*fg_in(capsys, "run", "--config", f, "--duration", "0.1"),
+                      "no [devices] configured")
+    rc, out, err = fg_in(capsys, "config", "check", "--sim", f)
     assert rc == 0 and "OK" in out, err
+    # a real daemon (signal handlers, a status socket): a process of its own
     rc, out, err = fg("run", "--sim", "--config", f, "--duration", "0.3", "--fast",
                       "--socket", tmp_path / "s.sock")
     assert rc == 0 and "Traceback" not in err, err
 
 
-def test_bad_mavlink_connection_is_refused_by_check_and_run(tmp_path):
+def test_bad_mavlink_connection_is_refused_by_check_and_run(tmp_path, capsys):
     f = tmp_path / "c.toml"
     f.write_text('[devices.laser]\ntype = "sim"\n\n[devices.link]\ntype = "mavlink"\n'
                  'connection = "udp-out:127.0.0.1"\n')
     for cmd in (("config", "check", f), ("run", "--config", f, "--duration", "0.1")):
-        assert_user_error(*fg(*cmd), "[devices.link.connection]", "udp-out:127.0.0.1",
+        assert_user_error(*fg_in(capsys, *cmd), "[devices.link.connection]", "udp-out:127.0.0.1",
                           "udpout:HOST:PORT")
 
 
@@ -206,3 +179,58 @@ def test_unexpected_exception_is_one_line_and_the_traceback_goes_to_a_log(monkey
                         r"details in (\S+)\)", line), line
     logged = Path(line.rsplit(" ", 1)[-1].rstrip(")")).read_text()
     assert "Traceback" in logged and "boom" in logged and "KeyError: 'a bug'" in logged
+
+
+# ---- a running daemon: a second one, snapshot -o DIR ---------------------------------------
+# Last in the module: a module fixture lives until the module ends, and this real daemon
+# (a process of its own, in real time) costs ~0.4 CPU-s a second while it runs.
+# The commands against it stay processes of their own: a socket between two processes.
+@pytest.fixture(scope="module")
+def daemon(tmp_path_factory):
+    from appliance.status import read_status
+    d = tmp_path_factory.mktemp("d")
+    sock = d / "status.sock"
+    log = open(d / "daemon.log", "w")
+    p = subprocess.Popen([sys.executable, "-m", "appliance.cli", "run", "--sim",
+                          "--socket", str(sock)], cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 300          # a loaded host starts slowly
+        while time.monotonic() < deadline:
+            if sock.is_socket():
+                # what `fieldguard status --json` reads and prints, asked from this process
+                # (a `status` process per poll cost ~0.5 CPU-s); no answer is its rc 2
+                try:
+                    out = json.dumps(read_status(str(sock)), indent=2)
+                except Exception:
+                    out = None
+                if out is not None and '"cycles": 0' not in out:
+                    break
+            assert p.poll() is None, (d / "daemon.log").read_text()
+            time.sleep(0.3)
+        else:
+            pytest.fail("daemon did not come up: " + (d / "daemon.log").read_text())
+        yield sock
+    finally:
+        p.send_signal(signal.SIGTERM)
+        p.wait(timeout=120)
+        log.close()
+
+
+def test_second_daemon_on_the_same_socket_says_so(daemon):
+    assert_user_error(*fg("run", "--sim", "--socket", daemon, "--duration", "1"),
+                      f"another fieldguard daemon is answering on {daemon}", "--socket")
+    # and the first one still answers: the refused daemon did not remove its socket
+    rc, out, err = fg("status", "--socket", daemon)
+    assert rc in (0, 1) and "state" in out, err
+
+
+def test_snapshot_into_a_folder(daemon, tmp_path):
+    rc, out, err = fg("snapshot", "-o", tmp_path, "--socket", daemon)
+    assert rc == 0 and "Traceback" not in err, err
+    pngs = list(tmp_path.glob("fieldguard-snapshot-*.png"))
+    assert len(pngs) == 1 and pngs[0].read_bytes()[:4] == b"\x89PNG"
+
+
+def test_snapshot_unwritable(daemon):
+    assert_user_error(*fg("snapshot", "-o", "/proc/nope/x.png", "--socket", daemon),
+                      "cannot write /proc/nope/x.png")

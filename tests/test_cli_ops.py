@@ -15,6 +15,41 @@ from appliance.daemon import Daemon, sim_config
 from drivers.runfolder import RunReader
 
 
+# ---- whole drives, each a `fieldguard run` process of its own (a real daemon: its signal
+# handlers, its status socket, the logging it sets up at start). First in the module: the
+# module fixture's daemon below runs in real time in this process until the module ends,
+# and these ~15 s of drives would be as many seconds of its CPU.
+def _run(*args, timeout=300):
+    import subprocess
+    import sys
+    from pathlib import Path
+    return subprocess.run([sys.executable, "-m", "appliance.cli", *map(str, args)],
+                          capture_output=True, text=True, timeout=timeout,
+                          cwd=Path(__file__).resolve().parents[1])
+
+
+def test_the_closing_summary_is_in_words(tmp_path):
+    r = _run("run", "--sim", "--fast", "--duration", "10", "--print-every", "5",
+             "--socket", tmp_path / "s.sock")
+    assert r.returncode == 0, r.stderr
+    out = r.stdout
+    assert "summary: 100 cycles (sim)" in out
+    assert "stops for obstacles: 1: 1 true (something really ahead), 0 false" in out, out
+    assert "overrides: none" in out and "collisions: none" in out
+    assert "the simulator's rendering (not the box's time) p50" in out
+
+
+def test_greenhouse_runs_the_rgbd_pipeline_and_drives(tmp_path):
+    r = _run("run", "--sim", "greenhouse", "--fast", "--duration", "3", "--print-every", "2",
+             "--socket", tmp_path / "s.sock", timeout=900)
+    assert r.returncode == 0, r.stderr
+    assert "pipelines=rgbd" in r.stderr and "devices=rgbd,link" in r.stderr, r.stderr[-2000:]
+    import re
+    m = re.search(r"drove (\d+\.\d) m", r.stdout)
+    assert m and float(m.group(1)) > 0.3, r.stdout      # the greenhouse sprayer's zones
+
+
+# ---- against a running daemon ------------------------------------------------------------
 @pytest.fixture(scope="module")
 def daemon(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("daemon")
@@ -138,33 +173,3 @@ def test_sim_rendering_is_reported_apart_from_the_loop(daemon):
     assert acq["p50"] < r["p50"], (acq, r)
     from appliance.cli import format_status
     assert "rendering p50" in format_status(st)
-
-
-def _run(*args, timeout=300):
-    import subprocess
-    import sys
-    from pathlib import Path
-    return subprocess.run([sys.executable, "-m", "appliance.cli", *map(str, args)],
-                          capture_output=True, text=True, timeout=timeout,
-                          cwd=Path(__file__).resolve().parents[1])
-
-
-def test_the_closing_summary_is_in_words(tmp_path):
-    r = _run("run", "--sim", "--fast", "--duration", "10", "--print-every", "5",
-             "--socket", tmp_path / "s.sock")
-    assert r.returncode == 0, r.stderr
-    out = r.stdout
-    assert "summary: 100 cycles (sim)" in out
-    assert "stops for obstacles: 1: 1 true (something really ahead), 0 false" in out, out
-    assert "overrides: none" in out and "collisions: none" in out
-    assert "the simulator's rendering (not the box's time) p50" in out
-
-
-def test_greenhouse_runs_the_rgbd_pipeline_and_drives(tmp_path):
-    r = _run("run", "--sim", "greenhouse", "--fast", "--duration", "3", "--print-every", "2",
-             "--socket", tmp_path / "s.sock", timeout=900)
-    assert r.returncode == 0, r.stderr
-    assert "pipelines=rgbd" in r.stderr and "devices=rgbd,link" in r.stderr, r.stderr[-2000:]
-    import re
-    m = re.search(r"drove (\d+\.\d) m", r.stdout)
-    assert m and float(m.group(1)) > 0.3, r.stdout      # the greenhouse sprayer's zones
