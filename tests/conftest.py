@@ -84,7 +84,7 @@ def _restore_root_logging():
 #    the soak a test among them (it takes the normal policy back), and beside them the rest
 #    as `--phase wall-clock`, one test at a time (docs/reliability.md).
 #  - A plain `pytest` (no phase) runs them first too, in one process, with the soak in the
-#    background: tools/soak.py's ~70 s of wall clock, in which the box's own processes use
+#    background: tools/soak.py's ~95 s of wall clock, in which the box's own processes use
 #    half a core at nice -10, overlap theirs; the soak test then collects the result.
 SIMULATED = ("test_campaign_shadow.py", "test_laser_false_stops.py", "test_cue.py",
              "test_campaign_compare.py", "test_campaign_models.py", "test_laser_ground_probe.py",

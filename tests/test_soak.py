@@ -1,4 +1,4 @@
-"""The chaos soak, a minute of it: tools/soak.py runs the daemon with the SICK laser emulator
+"""The chaos soak, a minute and a half of it: tools/soak.py runs the daemon with the SICK laser emulator
 (TCP), the strobe controller emulator (socat pty), a MAVLink vehicle behind MAVProxy and the CAN
 vehicle side (udp_multicast in a network namespace) while a seeded schedule injects a fault
 every ~6 s; the box is judged from what the vehicles heard on the wire. Longer runs and the
@@ -18,16 +18,16 @@ from tests.conftest import missing_tool
 ROOT = Path(__file__).resolve().parents[1]
 
 
-# 60 s with 12 s of warm-up leaves ~47 s for judging RSS and fds (a process needs 40 s here,
-# --judge-window: the median fd count of its first 20 s against its last 20 s) and ~9 faults
-# (>= 5 asked); the hour-long soak is the tool's, at the tool's 60-s window
-# (docs/reliability.md). Was 105 s / 20 s (~85 s judged, until stop 30's CI breached the
-# suite's 10 minutes: 671 s), then 84 s / 15 s with a 60-s window (~68 s judged) until
-# 2026-12-08 (the suite at 584 s in CI: the soak's 96 s at nice -10 took half a core from
-# both of the suite's parts)
-SOAK_ARGS = ("--minutes", "1.0", "--seed", "3", "--interval", "6", "--warmup", "12",
-             "--judge-window", "40")
-JUDGE_WINDOW_S = 40
+# 84 s with 15 s of warm-up leaves ~68 s for judging RSS and fds (a process needs 60 s: the
+# median fd count of its first 30 s against its last 30 s) and ~12 faults (>= 5 asked); the
+# hour-long soak is the tool's (docs/reliability.md). Was 105 s / 20 s (~85 s judged): the
+# suite's 10 minutes were breached (stop 30's CI: 671 s). Tried 2026-12-08 and NOT kept: 60 s
+# / 12 s with a 40-s window (--judge-window 40): in the whole suite it read fd growth +1 from
+# a GigE reconnect's ~10 s of 2-8 extra fds inside the last 20-s half (back to 31 by the end):
+# in a window that short a reconnect's transient moves the median
+SOAK_ARGS = ("--minutes", "1.4", "--seed", "3", "--interval", "6", "--warmup", "15",
+             "--judge-window", "60")
+JUDGE_WINDOW_S = 60
 
 
 def soak_missing() -> str | None:

@@ -40,7 +40,7 @@ fi
 # The whole suite, in two parts at once (tests/conftest.py says which module is which):
 #  - the modules that run in simulated time (lock-step daemons, pace 0: nothing they check
 #    depends on how fast they run), the soak's test among them, on pytest-xdist's workers (one
-#    per core and one more: the soak's test spends its ~70 s waiting for the soak; up to 5), at
+#    per core and one more: the soak's test spends its ~95 s waiting for the soak; up to 5), at
 #    the lowest CPU priority the kernel has (SCHED_IDLE: they get a core only when nothing else
 #    wants it, and a waking process of normal priority takes it from them at once);
 #  - beside them, every module with a wall-clock deadline, one test at a time, at normal
