@@ -23,7 +23,9 @@ def test_greenhouse_sprayer_stops_for_the_crate_on_its_path():
     log = []
     d.loop.on_cycle.append(lambda r: log.append(r))
     try:
-        d.run(max_cycles=90)          # 9 s: it slows, then stops short of the crate
+        # 5 s: it slows (from cycle 11), stops short of the crate (cycle 37), stands still
+        # from cycle 39 on; the 90 cycles of before stood there 5 s more, as they end
+        d.run(max_cycles=50)
         st = d.status()
     finally:
         d.shutdown()
@@ -61,7 +63,9 @@ def _run(d, cycles):
 
 
 def test_greenhouse_with_the_learned_cue_required_stops_for_the_crate():
-    log, st, loop_st = _run(_greenhouse_daemon(RgbdPipelineConfig(cue="required")), 90)
+    # 4.5 s: the stop for the crate comes at cycle 37 (the 90 cycles of before added 4.5 s
+    # standing before it)
+    log, st, loop_st = _run(_greenhouse_daemon(RgbdPipelineConfig(cue="required")), 45)
     notes = loop_st["pipeline_notes"]["rgbd"]
     assert notes["cue"] == "on (required)" and notes["cue_model"].endswith("cue-greenhouse.onnx")
     assert notes["cue_runs"] > 0
@@ -72,7 +76,7 @@ def test_greenhouse_with_the_learned_cue_required_stops_for_the_crate():
 
 def test_greenhouse_with_a_required_cue_whose_model_is_gone_never_drives(tmp_path):
     log, st, _ = _run(_greenhouse_daemon(RgbdPipelineConfig(
-        cue="required", cue_model=str(tmp_path / "gone.onnx"))), 20)
+        cue="required", cue_model=str(tmp_path / "gone.onnx"))), 10)   # at rest from cycle 4
     assert all(r.output.state is GateState.STOP for r in log)
     assert "learned cue required but unavailable" in log[-1].output.reason
     assert "gone.onnx" in log[-1].output.reason
@@ -149,7 +153,8 @@ def test_with_camera_view_the_rgbd_pipeline_says_what_it_observes():
     hold_blind and laser_confirm_by): in its image and depth range it observes, nearer than
     its minimum range or beyond its maximum it does not; off (the default), no view."""
     import numpy as np
-    log, _, _ = _run(_greenhouse_daemon(RgbdPipelineConfig(camera_view=True)), 20)
+    # the view is handed on every cycle, the first one included: 3 cycles as for 'off' below
+    log, _, _ = _run(_greenhouse_daemon(RgbdPipelineConfig(camera_view=True)), 3)
     det = log[-1].detections["rgbd"]
     view = det.view
     assert view is not None and view.shape is not None
