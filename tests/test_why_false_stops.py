@@ -40,7 +40,8 @@ def test_near_zone_keeps_what_meets_or_nears_the_stop_zone_nearest_first():
 
 
 def test_an_rgbd_drive_writes_a_record_and_a_picture_at_each_asked_time(tmp_path):
-    p = _run("greenhouse-coverage", "1", "--minutes", "0.05", "--at", "1.0,2.0",
+    # 0.04 min: 24 cycles at 10 Hz, to t = 2.3 s, past both asked times (0.05 min ran 3 s)
+    p = _run("greenhouse-coverage", "1", "--minutes", "0.04", "--at", "1.0,2.0",
              "--out", str(tmp_path))
     assert p.returncode == 0, p.stderr[-2000:]
     res = json.loads(p.stdout.strip().splitlines()[-1])
@@ -71,8 +72,11 @@ def test_bad_at_is_one_clear_line(tmp_path):
 
 def test_a_stereo_drive_still_runs_and_writes_the_drive_s_result(tmp_path):
     """The stereo-novelty path (the tool's first): a 3-s drive, no false stop in it; the
-    drive's result and events are written as the campaign writes them."""
-    p = _run("stubble-coverage", "1", "--minutes", "0.05", "--out", str(tmp_path))
+    drive's result and events are written as the campaign writes them. (The pair at a tenth
+    of 1280x1024: nothing checked here depends on the image's size; no false stop at 0.5
+    either; 2 CPU-s, not 5.)"""
+    p = _run("stubble-coverage", "1", "--minutes", "0.05", "--out", str(tmp_path),
+             "--stereo-scale", "0.1")
     assert p.returncode == 0, p.stderr[-2000:]
     res = json.loads(p.stdout.strip().splitlines()[-1])
     written = json.loads((tmp_path / "stubble-coverage-1-result.json").read_text())
