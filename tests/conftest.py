@@ -77,7 +77,10 @@ def _restore_root_logging():
 # machine changes nothing they check. Every other module (links, devices, the console,
 # services, Ray, the benchmarks: wall-clock deadlines) runs one test at a time at normal CPU
 # priority; a new module is one of those until it is listed here. Listed slowest first
-# (`--durations=0`, 2026-12-06): the order in which they are handed out.
+# (`--durations=0`, 2026-12-06): the order in which they are handed out. The last four joined
+# on 2026-12-08 (lock-step daemons at pace 0, a CLI tool's refusals, pure functions, the import
+# graph): the wall-clock part had become the longer of the two (275 s against 256 s in a
+# fresh clone), and they were ~10 s of it.
 #  - `./tools/test.sh` with no arguments (the whole suite, what CI runs) runs them as
 #    `--phase simulated` on pytest-xdist's workers (one per core and one for the soak's test,
 #    which waits; a module stays on one worker: its fixtures are computed once) at SCHED_IDLE,
@@ -97,7 +100,8 @@ SIMULATED = ("test_campaign_shadow.py", "test_laser_false_stops.py", "test_cue.p
              "test_boot_safe.py", "test_decision.py", "test_test_parts.py",
              "test_low_cell_probe.py", "test_recall_cue.py", "test_slow_recur.py",
              "test_boot_learnt.py", "test_look.py", "test_match_correlation.py",
-             "test_colour_lut_builds.py")
+             "test_colour_lut_builds.py", "test_incidents.py", "test_boot_with_model.py",
+             "test_hold_blind.py", "test_layers.py")
 SOAK_MODULE = "test_soak.py"
 SOAK_TEST = (f"tests/{SOAK_MODULE}::"
              "test_short_soak_no_false_clear_stop_within_two_cycles_no_fd_growth")
