@@ -25,9 +25,9 @@ ROOT = Path(__file__).resolve().parents[1]
 # / 12 s with a 40-s window (--judge-window 40): in the whole suite it read fd growth +1 from
 # a GigE reconnect's ~10 s of 2-8 extra fds inside the last 20-s half (back to 31 by the end):
 # in a window that short a reconnect's transient moves the median
-SOAK_ARGS = ("--minutes", "1.4", "--seed", "3", "--interval", "6", "--warmup", "15",
-             "--judge-window", "60")
 JUDGE_WINDOW_S = 60
+SOAK_ARGS = ("--minutes", "1.4", "--seed", "3", "--interval", "6", "--warmup", "15",
+             "--judge-window", str(JUDGE_WINDOW_S))
 
 
 def soak_missing() -> str | None:
